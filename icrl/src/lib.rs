@@ -1,0 +1,15 @@
+//! Safe in-context reinforcement learning on top of libtorch.
+
+#[cfg(test)]
+mod tests {
+    use tch::{Kind, Tensor};
+
+    #[test]
+    fn libtorch_links_and_backpropagates() {
+        let x = Tensor::from_slice(&[1.0f32, 2.0, 3.0]).set_requires_grad(true);
+        let y = (&x * &x).sum(Kind::Float);
+        y.backward();
+        let grad: Vec<f32> = x.grad().try_into().unwrap();
+        assert_eq!(grad, vec![2.0, 4.0, 6.0]);
+    }
+}

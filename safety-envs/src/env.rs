@@ -1,0 +1,80 @@
+//! The one constrained-MDP interface all environments share.
+//!
+//! A *task* (goal and hazard placement) is fixed with [`CmdpEnv::set_task`] and
+//! stays until the next call: an in-context trajectory is K episodes in one
+//! task. [`CmdpEnv::reset`] starts a new episode in the current task.
+//! `terminated` and `truncated` keep Gymnasium's meaning: terminated means the
+//! episode reached a terminal state (the goal), so no value is bootstrapped
+//! past it; truncated means the time limit cut it short.
+
+use crate::EnvError;
+use crate::spawn::Task;
+
+/// Shape and bounds of an observation or action space, so models size
+/// themselves from the environment.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Space {
+    /// `n` discrete choices, numbered `0..n`.
+    Discrete { n: usize },
+    /// A real vector of `low.len()` entries, each within `[low[i], high[i]]`.
+    Box { low: Vec<f32>, high: Vec<f32> },
+}
+
+impl Space {
+    /// Number of scalars a model sees for this space: `n` (one-hot) for a
+    /// discrete space, the vector length for a box.
+    pub fn flat_dim(&self) -> usize {
+        match self {
+            Space::Discrete { n } => *n,
+            Space::Box { low, .. } => low.len(),
+        }
+    }
+}
+
+/// An action for one environment step.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Action<'a> {
+    Discrete(usize),
+    Continuous(&'a [f32]),
+}
+
+/// What one step returns besides the observation (written into a caller's buffer).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct StepOutcome {
+    pub reward: f32,
+    pub cost: f32,
+    /// The episode reached a terminal state (goal): do not bootstrap past it.
+    pub terminated: bool,
+    /// The time limit ended the episode: bootstrapping past it is still valid.
+    pub truncated: bool,
+}
+
+impl StepOutcome {
+    /// The episode is over, for either reason.
+    pub fn done(&self) -> bool {
+        self.terminated || self.truncated
+    }
+}
+
+/// A constrained MDP with a goal, hazards and a time limit.
+pub trait CmdpEnv: Send {
+    /// Observation space (always a `Space::Box`).
+    fn observation_space(&self) -> Space;
+    /// Action space.
+    fn action_space(&self) -> Space;
+    /// Time limit in agent steps.
+    fn max_episode_steps(&self) -> usize;
+    /// Places the goal and hazards for the following episodes.
+    fn set_task(&mut self, task: &Task) -> Result<(), EnvError>;
+    /// The task currently set.
+    fn task(&self) -> &Task;
+    /// Starts a new episode in the current task and writes the first observation
+    /// into `obs` (length `observation_space().flat_dim()`). `seed` drives any
+    /// per-episode randomness, so equal seeds give bitwise-equal episodes.
+    fn reset(&mut self, seed: u64, obs: &mut [f32]) -> Result<(), EnvError>;
+    /// Applies one agent action and writes the next observation into `obs`.
+    /// Stepping after the episode ended is an error; call `reset` first.
+    fn step(&mut self, action: Action<'_>, obs: &mut [f32]) -> Result<StepOutcome, EnvError>;
+    /// Agent steps taken in the current episode.
+    fn elapsed_steps(&self) -> usize;
+}

@@ -1,0 +1,1 @@
+//! Safe wrapper over `mujoco-sys` (filled in by the foundation issue).
