@@ -1,4 +1,8 @@
 //! Safe in-context reinforcement learning on top of libtorch.
+//!
+//! - [`agent`]: the interface a pretrained in-context agent offers (reset, act).
+
+pub mod agent;
 
 #[cfg(test)]
 mod tests {
