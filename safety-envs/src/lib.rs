@@ -11,11 +11,11 @@ pub mod spawn;
 
 pub use env::{Action, CmdpEnv, Space, StepOutcome};
 pub use error::{EnvError, MujocoError};
-pub use spawn::{Cell, Task};
+pub use spawn::{Cell, Distance, Orientation, SpawnConfig, Task, sample_task};
 
 /// The names most users need, in one import.
 pub mod prelude {
     pub use crate::env::{Action, CmdpEnv, Space, StepOutcome};
     pub use crate::error::{EnvError, MujocoError};
-    pub use crate::spawn::{Cell, Task};
+    pub use crate::spawn::{Cell, Distance, Orientation, SpawnConfig, Task, sample_task};
 }
