@@ -1,1 +1,15 @@
-//! Safe wrapper over `mujoco-sys` (filled in by the foundation issue).
+//! A safe wrapper over `mujoco-sys`: one concept per file.
+//!
+//! - [`Model`] (`model.rs`): a compiled model from a file or an XML string.
+//! - [`Data`] (`data.rs`): the simulation state; `step` reports [`Warnings`].
+//! - `hook.rs`: the process-wide fatal-error hook ([`ensure_hooks`],
+//!   [`guarded`]) that turns MuJoCo's `mju_error` into `MujocoError::Engine`
+//!   instead of a wait-for-Enter-then-exit.
+
+mod data;
+mod hook;
+mod model;
+
+pub use data::{Data, Warning, Warnings};
+pub use hook::{ensure_hooks, guarded, last_warning};
+pub use model::{Model, ObjType};
