@@ -34,4 +34,7 @@ pub enum EnvError {
     /// A call in the wrong state, e.g. `step` after the episode ended.
     #[error("{0}")]
     State(String),
+    /// An error from environment `index` of a `VecEnv`.
+    #[error("environment {index}: {source}")]
+    InEnv { index: usize, source: Box<EnvError> },
 }

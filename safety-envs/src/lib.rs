@@ -4,22 +4,30 @@
 //! - [`env`]: the one CMDP interface ([`CmdpEnv`]).
 //! - [`spawn`]: centre- and edge-oriented task sampling.
 //! - [`darkroom`]: SafeDarkRoom, the 9x9 grid world.
+//! - [`make`]: environments by name ([`EnvName`], [`make_env`]).
+//! - [`vec_env`]: [`VecEnv`], many environments stepped across threads.
 
 pub mod darkroom;
 pub mod env;
 pub mod error;
+pub mod make;
 pub mod mujoco;
 pub mod spawn;
+pub mod vec_env;
 
 pub use darkroom::{DarkRoomConfig, SafeDarkRoom};
 pub use env::{Action, CmdpEnv, Space, StepOutcome};
 pub use error::{EnvError, MujocoError};
+pub use make::{EnvName, EnvOptions, make_env, spawn_config};
 pub use spawn::{Cell, Distance, Orientation, SpawnConfig, Task, sample_task};
+pub use vec_env::{VecAction, VecEnv};
 
 /// The names most users need, in one import.
 pub mod prelude {
     pub use crate::darkroom::{DarkRoomConfig, SafeDarkRoom};
     pub use crate::env::{Action, CmdpEnv, Space, StepOutcome};
     pub use crate::error::{EnvError, MujocoError};
+    pub use crate::make::{EnvName, EnvOptions, make_env, spawn_config};
     pub use crate::spawn::{Cell, Distance, Orientation, SpawnConfig, Task, sample_task};
+    pub use crate::vec_env::{VecAction, VecEnv};
 }
