@@ -1,8 +1,10 @@
 //! Safe in-context reinforcement learning on top of libtorch.
 //!
 //! - [`agent`]: the interface a pretrained in-context agent offers (reset, act).
+//! - [`model`]: the one causal transformer (with KV cache) every learner shares.
 
 pub mod agent;
+pub mod model;
 
 #[cfg(test)]
 mod tests {
