@@ -2,9 +2,11 @@
 //!
 //! - [`agent`]: the interface a pretrained in-context agent offers (reset, act).
 //! - [`model`]: the one causal transformer (with KV cache) every learner shares.
+//! - [`histories`]: learning histories in HDF5 (DSRL-compatible layout).
 
 pub mod agent;
 pub mod model;
+pub mod histories;
 
 #[cfg(test)]
 mod tests {

@@ -1,0 +1,846 @@
+//! Learning histories on disk: one HDF5 file, DSRL-compatible.
+//!
+//! A *learning history* is the ordered sequence of every episode one learning
+//! run (PPO-Lagrangian from scratch, or a noisy optimal policy) played in one
+//! task at one cost limit. A file holds many of them, concatenated.
+//!
+//! # Layout (format version [`FORMAT_VERSION`])
+//! Flat per-step arrays over all `N` steps of all histories, in order, with the
+//! names DSRL uses so its readers work unchanged:
+//!
+//! | dataset | shape | dtype | meaning |
+//! |---|---|---|---|
+//! | `observations` | (N, obs_dim) | float32 | observation before the action |
+//! | `next_observations` | (N, obs_dim) | float32 | observation after it |
+//! | `actions` | (N, action_dim) | float32 | the action; for a discrete space one column holding the index |
+//! | `rewards`, `costs` | (N,) | float32 | received for the action |
+//! | `terminals` | (N,) | float32 | 1 where the episode reached the goal (no bootstrap) |
+//! | `timeouts` | (N,) | float32 | 1 where the time limit ended the episode |
+//! | `history_id` | (N,) | int64 | which history the step belongs to, `0..H`, non-decreasing |
+//! | `episode_id` | (N,) | int64 | episode index within its history, from 0 |
+//! | `cost_limit` | (H,) | float32 | the history's cost limit |
+//! | `task_goal` | (H, 2) | int64 | goal cell (row, col) |
+//! | `task_obstacles` | (H, n_obstacles, 2) | int64 | obstacle cells (row, col) |
+//!
+//! File attributes: `env` (string), `config` (string: the generating
+//! configuration as JSON), `seed` (uint64), `format_version` (uint32),
+//! `obs_dim`, `action_dim`, `action_n` (number of discrete actions, 0 for a
+//! continuous space), `grid_size` (uint64). Every array is chunked and
+//! deflate-compressed. Episodes split at `terminals | timeouts`; every history
+//! ends on an episode boundary.
+//!
+//! The writer goes through `<out>.tmp` and renames it, so an interrupted run
+//! never leaves a half-written file under the final name.
+
+use std::fmt;
+use std::ops::Range;
+use std::path::{Path, PathBuf};
+
+use hdf5::types::VarLenUnicode;
+use safety_envs::{Cell, Task};
+use thiserror::Error;
+
+/// Version of the layout above; readers refuse any other.
+pub const FORMAT_VERSION: u32 = 1;
+
+/// Rows per chunk of the per-step arrays.
+const CHUNK_ROWS: usize = 4096;
+/// Deflate level (0-9): 4 is most of the gain for little time.
+const DEFLATE_LEVEL: u8 = 4;
+
+/// What is wrong with a history file.
+#[derive(Debug)]
+pub enum Problem {
+    /// No file at that path.
+    Missing,
+    /// HDF5 could not open or read it (not an HDF5 file, truncated, ...).
+    Unreadable(String),
+    /// Made for another environment.
+    WrongEnv { found: String, expected: String },
+    /// Written by another layout version.
+    WrongVersion { found: u32, expected: u32 },
+    /// A required dataset or attribute is absent or has the wrong shape.
+    Malformed(String),
+    /// A history with no steps, or a file with no histories.
+    Empty(String),
+    /// The caller asked to write something inconsistent.
+    Invalid(String),
+}
+
+impl fmt::Display for Problem {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            Problem::Missing => write!(f, "no such file"),
+            Problem::Unreadable(e) => write!(f, "not a readable HDF5 file ({e})"),
+            Problem::WrongEnv { found, expected } => write!(
+                f,
+                "histories were made in env '{found}', but '{expected}' was requested"
+            ),
+            Problem::WrongVersion { found, expected } => write!(
+                f,
+                "format version {found} is not supported (this build reads version {expected})"
+            ),
+            Problem::Malformed(what) => write!(f, "malformed: {what}"),
+            Problem::Empty(what) => write!(f, "empty: {what}"),
+            Problem::Invalid(what) => write!(f, "invalid histories: {what}"),
+        }
+    }
+}
+
+/// An error reading or writing a history file: names the file and the problem.
+#[derive(Debug, Error)]
+#[error("history file {}: {problem}", path.display())]
+pub struct HistoryError {
+    pub path: PathBuf,
+    pub problem: Problem,
+}
+
+impl HistoryError {
+    fn new(path: &Path, problem: Problem) -> Self {
+        HistoryError {
+            path: path.to_path_buf(),
+            problem,
+        }
+    }
+}
+
+/// File-level facts: which environment, how it was made, sizes.
+#[derive(Clone, Debug, PartialEq)]
+pub struct DatasetInfo {
+    /// Environment name, as `make_env` spells it (`darkroom`, `point`, `car`).
+    pub env: String,
+    /// The generating configuration, JSON.
+    pub config: String,
+    /// Master seed of the generation.
+    pub seed: u64,
+    pub obs_dim: usize,
+    /// Columns of `actions`: 1 for a discrete space (the index), else the vector length.
+    pub action_dim: usize,
+    /// Number of discrete actions; `None` for a continuous space.
+    pub action_n: Option<usize>,
+    /// Task grid side.
+    pub grid_size: usize,
+}
+
+/// One learning history: every step of every episode of one learning run, in order.
+#[derive(Clone, Debug, PartialEq)]
+pub struct History {
+    pub cost_limit: f32,
+    pub task: Task,
+    /// (T, obs_dim)
+    pub observations: Vec<f32>,
+    /// (T, obs_dim)
+    pub next_observations: Vec<f32>,
+    /// (T, action_dim)
+    pub actions: Vec<f32>,
+    /// (T,)
+    pub rewards: Vec<f32>,
+    /// (T,)
+    pub costs: Vec<f32>,
+    /// (T,) the episode reached a terminal state at this step.
+    pub terminals: Vec<bool>,
+    /// (T,) the time limit ended the episode at this step.
+    pub timeouts: Vec<bool>,
+}
+
+impl History {
+    /// An empty history for `task` at `cost_limit`.
+    pub fn new(task: Task, cost_limit: f32) -> Self {
+        History {
+            cost_limit,
+            task,
+            observations: Vec::new(),
+            next_observations: Vec::new(),
+            actions: Vec::new(),
+            rewards: Vec::new(),
+            costs: Vec::new(),
+            terminals: Vec::new(),
+            timeouts: Vec::new(),
+        }
+    }
+
+    /// Number of steps.
+    pub fn len(&self) -> usize {
+        self.rewards.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.rewards.is_empty()
+    }
+
+    /// Appends one step.
+    #[allow(clippy::too_many_arguments)]
+    pub fn push(
+        &mut self,
+        obs: &[f32],
+        action: &[f32],
+        reward: f32,
+        cost: f32,
+        next_obs: &[f32],
+        terminated: bool,
+        truncated: bool,
+    ) {
+        self.observations.extend_from_slice(obs);
+        self.actions.extend_from_slice(action);
+        self.rewards.push(reward);
+        self.costs.push(cost);
+        self.next_observations.extend_from_slice(next_obs);
+        self.terminals.push(terminated);
+        self.timeouts.push(truncated);
+    }
+
+    /// Step ranges of the episodes, split at `terminals | timeouts`. A trailing
+    /// unfinished episode (none in a valid file) is included as the last range.
+    pub fn episodes(&self) -> Vec<Range<usize>> {
+        let mut out = Vec::new();
+        let mut start = 0;
+        for t in 0..self.len() {
+            if self.terminals[t] || self.timeouts[t] {
+                out.push(start..t + 1);
+                start = t + 1;
+            }
+        }
+        if start < self.len() {
+            out.push(start..self.len());
+        }
+        out
+    }
+
+    /// (return, cost) of every episode, in order.
+    pub fn episode_totals(&self) -> Vec<(f32, f32)> {
+        self.episodes()
+            .into_iter()
+            .map(|r| {
+                (
+                    self.rewards[r.clone()].iter().sum(),
+                    self.costs[r].iter().sum(),
+                )
+            })
+            .collect()
+    }
+
+    /// Drops steps after the last finished episode (a learning run stopped by a
+    /// step budget mid-episode).
+    pub fn truncate_to_finished_episodes(&mut self, obs_dim: usize, action_dim: usize) {
+        let keep = (0..self.len())
+            .rev()
+            .find(|&t| self.terminals[t] || self.timeouts[t])
+            .map_or(0, |t| t + 1);
+        self.observations.truncate(keep * obs_dim);
+        self.next_observations.truncate(keep * obs_dim);
+        self.actions.truncate(keep * action_dim);
+        self.rewards.truncate(keep);
+        self.costs.truncate(keep);
+        self.terminals.truncate(keep);
+        self.timeouts.truncate(keep);
+    }
+
+    /// Checks array lengths against the dimensions and that the history ends
+    /// on an episode boundary.
+    fn check(&self, i: usize, info: &DatasetInfo) -> Result<(), Problem> {
+        let t = self.len();
+        if t == 0 {
+            return Err(Problem::Empty(format!("history {i} has no steps")));
+        }
+        let lens = [
+            ("observations", self.observations.len(), t * info.obs_dim),
+            (
+                "next_observations",
+                self.next_observations.len(),
+                t * info.obs_dim,
+            ),
+            ("actions", self.actions.len(), t * info.action_dim),
+            ("costs", self.costs.len(), t),
+            ("terminals", self.terminals.len(), t),
+            ("timeouts", self.timeouts.len(), t),
+        ];
+        for (name, got, want) in lens {
+            if got != want {
+                return Err(Problem::Invalid(format!(
+                    "history {i}: {name} has {got} values, expected {want} ({t} steps)"
+                )));
+            }
+        }
+        if !(self.terminals[t - 1] || self.timeouts[t - 1]) {
+            return Err(Problem::Invalid(format!(
+                "history {i} ends mid-episode (its last step is neither terminal nor a timeout)"
+            )));
+        }
+        if self.task.grid_size != info.grid_size {
+            return Err(Problem::Invalid(format!(
+                "history {i}: task grid {} differs from the file's {}",
+                self.task.grid_size, info.grid_size
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// A whole file: its facts and its histories, in order.
+#[derive(Clone, Debug, PartialEq)]
+pub struct HistoryFile {
+    pub info: DatasetInfo,
+    pub histories: Vec<History>,
+}
+
+impl HistoryFile {
+    /// Total steps over all histories.
+    pub fn total_steps(&self) -> usize {
+        self.histories.iter().map(History::len).sum()
+    }
+}
+
+/// `<path>.tmp`: where the writer puts the file before renaming it.
+pub fn temp_path(path: &Path) -> PathBuf {
+    let mut s = path.as_os_str().to_owned();
+    s.push(".tmp");
+    PathBuf::from(s)
+}
+
+/// Creates dataset `name` of `shape` (row-major `data`), chunked along the
+/// first axis and deflate-compressed.
+fn put<T: hdf5::H5Type>(
+    f: &hdf5::File,
+    name: &str,
+    data: &[T],
+    shape: &[usize],
+) -> hdf5::Result<()> {
+    let mut chunk: Vec<usize> = shape.iter().map(|&d| d.max(1)).collect();
+    chunk[0] = chunk[0].min(CHUNK_ROWS);
+    f.new_dataset::<T>()
+        .shape(shape.to_vec())
+        .chunk(chunk)
+        .deflate(DEFLATE_LEVEL)
+        .create(name)?
+        .write_raw(data)
+}
+
+/// Reads dataset `name` as a flat row-major vector with its shape.
+fn get<T: hdf5::H5Type>(f: &hdf5::File, name: &str) -> hdf5::Result<(Vec<T>, Vec<usize>)> {
+    let d = f.dataset(name)?;
+    Ok((d.read_raw::<T>()?, d.shape()))
+}
+
+/// Writes `histories` to `path` (through `<path>.tmp` and a rename).
+pub fn write_histories(path: &Path, file: &HistoryFile) -> Result<(), HistoryError> {
+    let err = |p| HistoryError::new(path, p);
+    if file.histories.is_empty() {
+        return Err(err(Problem::Empty("no histories to write".into())));
+    }
+    if let (Some(n), d) = (file.info.action_n, file.info.action_dim)
+        && (n == 0 || d != 1)
+    {
+        return Err(err(Problem::Invalid(format!(
+            "a discrete action space needs action_n > 0 and action_dim 1, got {n} and {d}"
+        ))));
+    }
+    let n_obstacles = file.histories[0].task.obstacles.len();
+    for (i, h) in file.histories.iter().enumerate() {
+        h.check(i, &file.info).map_err(err)?;
+        if h.task.obstacles.len() != n_obstacles {
+            return Err(err(Problem::Invalid(format!(
+                "history {i} has {} obstacles, history 0 has {n_obstacles}",
+                h.task.obstacles.len()
+            ))));
+        }
+    }
+    let tmp = temp_path(path);
+    let result = write_raw(&tmp, file, n_obstacles);
+    match result {
+        Ok(()) => std::fs::rename(&tmp, path).map_err(|e| {
+            err(Problem::Unreadable(format!(
+                "renaming {}: {e}",
+                tmp.display()
+            )))
+        }),
+        Err(e) => {
+            // Best effort: never leave a partial temporary file behind.
+            let _ = std::fs::remove_file(&tmp);
+            Err(err(Problem::Unreadable(e.to_string())))
+        }
+    }
+}
+
+fn write_raw(tmp: &Path, file: &HistoryFile, n_obstacles: usize) -> hdf5::Result<()> {
+    let info = &file.info;
+    let n: usize = file.total_steps();
+    let h = file.histories.len();
+    let concat = |f: &dyn Fn(&History) -> &[f32]| -> Vec<f32> {
+        file.histories
+            .iter()
+            .flat_map(|h| f(h).iter().copied())
+            .collect()
+    };
+    let flag = |f: &dyn Fn(&History) -> &[bool]| -> Vec<f32> {
+        file.histories
+            .iter()
+            .flat_map(|h| f(h).iter().map(|&b| if b { 1.0 } else { 0.0 }))
+            .collect()
+    };
+    let observations = concat(&|h| &h.observations);
+    let next_observations = concat(&|h| &h.next_observations);
+    let actions = concat(&|h| &h.actions);
+    let rewards = concat(&|h| &h.rewards);
+    let costs = concat(&|h| &h.costs);
+    let terminals = flag(&|h| &h.terminals);
+    let timeouts = flag(&|h| &h.timeouts);
+    let mut history_id = Vec::with_capacity(n);
+    let mut episode_id = Vec::with_capacity(n);
+    for (i, hist) in file.histories.iter().enumerate() {
+        for (e, r) in hist.episodes().into_iter().enumerate() {
+            for _ in r {
+                history_id.push(i as i64);
+                episode_id.push(e as i64);
+            }
+        }
+    }
+    let cost_limit: Vec<f32> = file.histories.iter().map(|h| h.cost_limit).collect();
+    let goals: Vec<i64> = file
+        .histories
+        .iter()
+        .flat_map(|h| [h.task.goal.row as i64, h.task.goal.col as i64])
+        .collect();
+    let obstacles: Vec<i64> = file
+        .histories
+        .iter()
+        .flat_map(|h| {
+            h.task
+                .obstacles
+                .iter()
+                .flat_map(|c| [c.row as i64, c.col as i64])
+        })
+        .collect();
+
+    let f = hdf5::File::create(tmp)?;
+    put(&f, "observations", &observations, &[n, info.obs_dim])?;
+    put(
+        &f,
+        "next_observations",
+        &next_observations,
+        &[n, info.obs_dim],
+    )?;
+    put(&f, "actions", &actions, &[n, info.action_dim])?;
+    put(&f, "rewards", &rewards, &[n])?;
+    put(&f, "costs", &costs, &[n])?;
+    put(&f, "terminals", &terminals, &[n])?;
+    put(&f, "timeouts", &timeouts, &[n])?;
+    put(&f, "history_id", &history_id, &[n])?;
+    put(&f, "episode_id", &episode_id, &[n])?;
+    put(&f, "cost_limit", &cost_limit, &[h])?;
+    put(&f, "task_goal", &goals, &[h, 2])?;
+    put(&f, "task_obstacles", &obstacles, &[h, n_obstacles, 2])?;
+
+    let text = |s: &str| -> hdf5::Result<VarLenUnicode> {
+        s.parse::<VarLenUnicode>()
+            .map_err(|e| hdf5::Error::from(e.to_string().as_str()))
+    };
+    f.new_attr::<VarLenUnicode>()
+        .create("env")?
+        .write_scalar(&text(&info.env)?)?;
+    f.new_attr::<VarLenUnicode>()
+        .create("config")?
+        .write_scalar(&text(&info.config)?)?;
+    f.new_attr::<u64>()
+        .create("seed")?
+        .write_scalar(&info.seed)?;
+    f.new_attr::<u32>()
+        .create("format_version")?
+        .write_scalar(&FORMAT_VERSION)?;
+    for (name, v) in [
+        ("obs_dim", info.obs_dim),
+        ("action_dim", info.action_dim),
+        ("action_n", info.action_n.unwrap_or(0)),
+        ("grid_size", info.grid_size),
+    ] {
+        f.new_attr::<u64>()
+            .create(name)?
+            .write_scalar(&(v as u64))?;
+    }
+    f.flush()?;
+    Ok(())
+}
+
+/// Reads a history file and validates it. With `expected_env`, a file made
+/// for another environment is an error.
+pub fn read_histories(
+    path: &Path,
+    expected_env: Option<&str>,
+) -> Result<HistoryFile, HistoryError> {
+    let err = |p| HistoryError::new(path, p);
+    if !path.exists() {
+        return Err(err(Problem::Missing));
+    }
+    let f = hdf5::File::open(path).map_err(|e| err(Problem::Unreadable(e.to_string())))?;
+    let malformed = |what: String| err(Problem::Malformed(what));
+
+    // Version first: a file of another version may lack everything else.
+    let version = f
+        .attr("format_version")
+        .and_then(|a| a.read_scalar::<u32>())
+        .map_err(|e| malformed(format!("attribute format_version: {e}")))?;
+    if version != FORMAT_VERSION {
+        return Err(err(Problem::WrongVersion {
+            found: version,
+            expected: FORMAT_VERSION,
+        }));
+    }
+    let text_attr = |name: &str| -> Result<String, HistoryError> {
+        f.attr(name)
+            .and_then(|a| a.read_scalar::<VarLenUnicode>())
+            .map(|s| s.as_str().to_string())
+            .map_err(|e| malformed(format!("attribute {name}: {e}")))
+    };
+    let u64_attr = |name: &str| -> Result<u64, HistoryError> {
+        f.attr(name)
+            .and_then(|a| a.read_scalar::<u64>())
+            .map_err(|e| malformed(format!("attribute {name}: {e}")))
+    };
+    let env = text_attr("env")?;
+    if let Some(expected) = expected_env
+        && env != expected
+    {
+        return Err(err(Problem::WrongEnv {
+            found: env,
+            expected: expected.to_string(),
+        }));
+    }
+    let action_n = u64_attr("action_n")? as usize;
+    let info = DatasetInfo {
+        env,
+        config: text_attr("config")?,
+        seed: u64_attr("seed")?,
+        obs_dim: u64_attr("obs_dim")? as usize,
+        action_dim: u64_attr("action_dim")? as usize,
+        action_n: (action_n > 0).then_some(action_n),
+        grid_size: u64_attr("grid_size")? as usize,
+    };
+
+    // Each dataset with the shape it must have (None: any length, checked below).
+    let read = |name: &str, tail: &[usize]| -> Result<(Vec<f32>, usize), HistoryError> {
+        let (v, shape) =
+            get::<f32>(&f, name).map_err(|e| malformed(format!("dataset {name}: {e}")))?;
+        if shape.len() != 1 + tail.len() || shape[1..] != *tail {
+            return Err(malformed(format!(
+                "dataset {name} has shape {shape:?}, expected (rows, {tail:?})"
+            )));
+        }
+        Ok((v, shape[0]))
+    };
+    let (observations, n_obs) = read("observations", &[info.obs_dim])?;
+    let (next_observations, n_next) = read("next_observations", &[info.obs_dim])?;
+    let (actions, n_act) = read("actions", &[info.action_dim])?;
+    let (rewards, n) = read("rewards", &[])?;
+    let (costs, n_costs) = read("costs", &[])?;
+    let (terminals, n_term) = read("terminals", &[])?;
+    let (timeouts, n_time) = read("timeouts", &[])?;
+    let (cost_limit, h) = read("cost_limit", &[])?;
+    let (history_id, id_shape) =
+        get::<i64>(&f, "history_id").map_err(|e| malformed(format!("dataset history_id: {e}")))?;
+    let (goals, goal_shape) =
+        get::<i64>(&f, "task_goal").map_err(|e| malformed(format!("dataset task_goal: {e}")))?;
+    let (obstacles, obstacle_shape) = get::<i64>(&f, "task_obstacles")
+        .map_err(|e| malformed(format!("dataset task_obstacles: {e}")))?;
+
+    for (name, len) in [
+        ("observations", n_obs),
+        ("next_observations", n_next),
+        ("actions", n_act),
+        ("costs", n_costs),
+        ("terminals", n_term),
+        ("timeouts", n_time),
+        ("history_id", id_shape.first().copied().unwrap_or(0)),
+    ] {
+        if len != n {
+            return Err(malformed(format!(
+                "dataset {name} has {len} rows, rewards has {n}"
+            )));
+        }
+    }
+    if h == 0 {
+        return Err(err(Problem::Empty("the file holds no histories".into())));
+    }
+    let n_obstacles = obstacle_shape.get(1).copied().unwrap_or(0);
+    if goal_shape != [h, 2] || obstacle_shape != [h, n_obstacles, 2] {
+        return Err(malformed(format!(
+            "task arrays have shapes {goal_shape:?} and {obstacle_shape:?}, expected [{h}, 2] and [{h}, n, 2]"
+        )));
+    }
+
+    // Split the flat arrays by history_id (non-decreasing, every id present).
+    let mut histories = Vec::with_capacity(h);
+    let mut start = 0usize;
+    for i in 0..h {
+        let mut end = start;
+        while end < n && history_id[end] == i as i64 {
+            end += 1;
+        }
+        if end == start {
+            return Err(err(Problem::Empty(format!(
+                "history {i} (cost limit {}) has no steps",
+                cost_limit[i]
+            ))));
+        }
+        let cell = |r: i64, c: i64| -> Result<Cell, HistoryError> {
+            if r < 0 || c < 0 || r as usize >= info.grid_size || c as usize >= info.grid_size {
+                return Err(malformed(format!(
+                    "history {i}: cell ({r}, {c}) is outside the {g}x{g} grid",
+                    g = info.grid_size
+                )));
+            }
+            Ok(Cell {
+                row: r as usize,
+                col: c as usize,
+            })
+        };
+        let task = Task {
+            grid_size: info.grid_size,
+            goal: cell(goals[2 * i], goals[2 * i + 1])?,
+            obstacles: (0..n_obstacles)
+                .map(|j| {
+                    let k = 2 * (i * n_obstacles + j);
+                    cell(obstacles[k], obstacles[k + 1])
+                })
+                .collect::<Result<_, _>>()?,
+        };
+        let rows = |a: &[f32], cols: usize| a[start * cols..end * cols].to_vec();
+        let flags = |a: &[f32]| a[start..end].iter().map(|&x| x != 0.0).collect();
+        let hist = History {
+            cost_limit: cost_limit[i],
+            task,
+            observations: rows(&observations, info.obs_dim),
+            next_observations: rows(&next_observations, info.obs_dim),
+            actions: rows(&actions, info.action_dim),
+            rewards: rows(&rewards, 1),
+            costs: rows(&costs, 1),
+            terminals: flags(&terminals),
+            timeouts: flags(&timeouts),
+        };
+        hist.check(i, &info)
+            .map_err(|p| match p {
+                Problem::Invalid(s) => Problem::Malformed(s),
+                other => other,
+            })
+            .map_err(err)?;
+        histories.push(hist);
+        start = end;
+    }
+    if start != n {
+        return Err(malformed(format!(
+            "history_id is not sorted 0..{h}: step {start} has id {}",
+            history_id[start]
+        )));
+    }
+    Ok(HistoryFile { info, histories })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use safety_envs::{Orientation, SpawnConfig, sample_task};
+
+    fn tiny_file(histories: usize) -> HistoryFile {
+        let cfg = SpawnConfig::darkroom();
+        let histories = (0..histories)
+            .map(|i| {
+                let task = sample_task(&cfg, Orientation::Centre, i as u64).unwrap();
+                let mut h = History::new(task, 2.5 * i as f32);
+                // Two episodes: 3 steps ending on the goal, 2 steps timed out.
+                for t in 0..5 {
+                    let x = (i * 10 + t) as f32;
+                    h.push(
+                        &[x, -x],
+                        &[(t % 5) as f32],
+                        if t == 2 { 1.0 } else { 0.0 },
+                        (t % 2) as f32,
+                        &[x + 1.0, -x - 1.0],
+                        t == 2,
+                        t == 4,
+                    );
+                }
+                h
+            })
+            .collect();
+        HistoryFile {
+            info: DatasetInfo {
+                env: "darkroom".into(),
+                config: r#"{"steps": 5}"#.into(),
+                seed: 7,
+                obs_dim: 2,
+                action_dim: 1,
+                action_n: Some(5),
+                grid_size: 9,
+            },
+            histories,
+        }
+    }
+
+    fn tmpdir(name: &str) -> PathBuf {
+        let d = std::env::temp_dir().join(format!("icrl-histories-{name}-{}", std::process::id()));
+        std::fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    #[test]
+    fn round_trip_keeps_everything() {
+        let dir = tmpdir("roundtrip");
+        let path = dir.join("h.h5");
+        let file = tiny_file(3);
+        write_histories(&path, &file).unwrap();
+        assert!(
+            !temp_path(&path).exists(),
+            "the temporary file must be renamed away"
+        );
+        let back = read_histories(&path, Some("darkroom")).unwrap();
+        assert_eq!(back, file);
+        assert_eq!(back.histories[1].episodes(), vec![0..3, 3..5]);
+        assert_eq!(
+            back.histories[1].episode_totals(),
+            vec![(1.0, 1.0), (0.0, 1.0)]
+        );
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    fn problem_of(path: &Path, env: Option<&str>) -> (Problem, String) {
+        let e = read_histories(path, env).unwrap_err();
+        let msg = e.to_string();
+        assert!(
+            msg.contains(&path.display().to_string()),
+            "message must name the file: {msg}"
+        );
+        (e.problem, msg)
+    }
+
+    #[test]
+    fn missing_and_corrupt_files_are_named() {
+        let dir = tmpdir("bad");
+        let missing = dir.join("nothing.h5");
+        assert!(matches!(problem_of(&missing, None).0, Problem::Missing));
+        let junk = dir.join("junk.h5");
+        std::fs::write(&junk, b"this is not hdf5").unwrap();
+        assert!(matches!(problem_of(&junk, None).0, Problem::Unreadable(_)));
+        // A real file cut in half.
+        let good = dir.join("good.h5");
+        write_histories(&good, &tiny_file(2)).unwrap();
+        let bytes = std::fs::read(&good).unwrap();
+        let cut = dir.join("cut.h5");
+        std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
+        let (p, msg) = problem_of(&cut, None);
+        assert!(
+            matches!(p, Problem::Unreadable(_) | Problem::Malformed(_)),
+            "{msg}"
+        );
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[test]
+    fn other_env_and_other_version_are_refused() {
+        let dir = tmpdir("env");
+        let path = dir.join("h.h5");
+        write_histories(&path, &tiny_file(1)).unwrap();
+        let (p, msg) = problem_of(&path, Some("point"));
+        assert!(matches!(p, Problem::WrongEnv { .. }), "{msg}");
+        assert!(msg.contains("darkroom") && msg.contains("point"), "{msg}");
+        {
+            let f = hdf5::File::open_rw(&path).unwrap();
+            f.attr("format_version")
+                .unwrap()
+                .write_scalar(&99u32)
+                .unwrap();
+        }
+        let (p, msg) = problem_of(&path, Some("darkroom"));
+        assert!(
+            matches!(
+                p,
+                Problem::WrongVersion {
+                    found: 99,
+                    expected: FORMAT_VERSION
+                }
+            ),
+            "{msg}"
+        );
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[test]
+    fn empty_histories_are_refused_on_write_and_read() {
+        let dir = tmpdir("empty");
+        let path = dir.join("h.h5");
+        let mut file = tiny_file(2);
+        file.histories[1] = History::new(file.histories[1].task.clone(), 5.0);
+        let e = write_histories(&path, &file).unwrap_err();
+        assert!(matches!(e.problem, Problem::Empty(_)), "{e}");
+        assert!(!path.exists() && !temp_path(&path).exists());
+        // A file whose per-history table names a history without steps.
+        let mut file = tiny_file(2);
+        write_histories(&path, &file).unwrap();
+        {
+            let f = hdf5::File::open_rw(&path).unwrap();
+            f.unlink("cost_limit").unwrap();
+            put(&f, "cost_limit", &[0.0f32, 2.5, 5.0], &[3]).unwrap();
+            f.unlink("task_goal").unwrap();
+            put(&f, "task_goal", &[0i64; 6], &[3, 2]).unwrap();
+            f.unlink("task_obstacles").unwrap();
+            put(&f, "task_obstacles", &[0i64; 150], &[3, 25, 2]).unwrap();
+        }
+        let (p, msg) = problem_of(&path, None);
+        assert!(matches!(p, Problem::Empty(_)), "{msg}");
+        assert!(msg.contains("history 2"), "{msg}");
+        // A history that stops mid-episode cannot be written.
+        file.histories[0].timeouts[4] = false;
+        let e = write_histories(&path, &file).unwrap_err();
+        assert!(matches!(e.problem, Problem::Invalid(_)), "{e}");
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    /// Opens a written file with Python's h5py and checks names, shapes and
+    /// dtypes. Fails (does not skip) when python3 or h5py is missing: the test
+    /// set-up (`cargo xtask test`) installs h5py.
+    #[test]
+    fn h5py_reads_the_layout() {
+        let dir = tmpdir("h5py");
+        let path = dir.join("h.h5");
+        write_histories(&path, &tiny_file(3)).unwrap();
+        let script = r#"
+import sys, h5py
+f = h5py.File(sys.argv[1], "r")
+want = {
+    "observations": ((15, 2), "float32"), "next_observations": ((15, 2), "float32"),
+    "actions": ((15, 1), "float32"), "rewards": ((15,), "float32"), "costs": ((15,), "float32"),
+    "terminals": ((15,), "float32"), "timeouts": ((15,), "float32"),
+    "history_id": ((15,), "int64"), "episode_id": ((15,), "int64"),
+    "cost_limit": ((3,), "float32"), "task_goal": ((3, 2), "int64"),
+    "task_obstacles": ((3, 25, 2), "int64"),
+}
+assert set(f.keys()) == set(want), sorted(f.keys())
+for name, (shape, dtype) in want.items():
+    d = f[name]
+    assert d.shape == shape and str(d.dtype) == dtype, (name, d.shape, d.dtype)
+    assert d.compression == "gzip" and d.chunks is not None, (name, d.compression, d.chunks)
+a = f.attrs
+assert a["env"] == "darkroom" and int(a["format_version"]) == 1 and int(a["seed"]) == 7, dict(a)
+assert int(a["action_n"]) == 5 and int(a["obs_dim"]) == 2
+assert list(f["episode_id"][:5]) == [0, 0, 0, 1, 1]
+assert list(f["history_id"][:]) == [0] * 5 + [1] * 5 + [2] * 5
+assert float(f["rewards"][:].sum()) == 3.0
+print("h5py ok")
+"#;
+        let out = std::process::Command::new("python3")
+            .arg("-c")
+            .arg(script)
+            .arg(&path)
+            .output();
+        let out = match out {
+            Ok(o) => o,
+            Err(e) => {
+                panic!("python3 is needed for this test (install it, then `pip install h5py`): {e}")
+            }
+        };
+        let stderr = String::from_utf8_lossy(&out.stderr);
+        assert!(
+            !stderr.contains("No module named 'h5py'"),
+            "h5py is missing: run `pip install h5py` (cargo xtask test does): {stderr}"
+        );
+        assert!(out.status.success(), "h5py check failed: {stderr}");
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+}
