@@ -82,7 +82,7 @@ pub fn last_warning() -> Option<String> {
 /// into `Err(MujocoError::Engine)`. Any other panic is re-raised unchanged.
 pub fn guarded<T>(f: impl FnOnce() -> T) -> Result<T, MujocoError> {
     ensure_hooks();
-    catch_unwind(AssertUnwindSafe(f)).map_err(|payload| engine_error_or_resume(payload))
+    catch_unwind(AssertUnwindSafe(f)).map_err(engine_error_or_resume)
 }
 
 fn engine_error_or_resume(payload: Box<dyn Any + Send>) -> MujocoError {
