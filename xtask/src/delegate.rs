@@ -1,0 +1,137 @@
+//! The commands that set up and then hand over to cargo. Arguments after the
+//! command name pass through verbatim, so the delegated binary's own parser
+//! (clap) reports bad flags.
+
+use std::env;
+use std::fs;
+use std::path::Path;
+use std::process::{Command, ExitCode, ExitStatus};
+
+use anyhow::{Context, Result};
+
+use crate::BenchTarget;
+use crate::setup::{repo_root, setup};
+
+/// `cargo xtask test`: `cargo test --workspace ARGS`.
+pub fn test(args: &[String]) -> Result<ExitCode> {
+    setup()?;
+    cargo(&["test", "--workspace"], args)
+}
+
+/// `cargo xtask pretrain|dataset|eval`: `icrl <subcommand> ARGS` in release.
+pub fn icrl(subcommand: &str, args: &[String]) -> Result<ExitCode> {
+    setup()?;
+    if !has_bin("icrl", "icrl") {
+        return not_built_yet(subcommand, "icrl/src/bin/icrl.rs");
+    }
+    let leading = [
+        "run",
+        "--release",
+        "-p",
+        "icrl",
+        "--bin",
+        "icrl",
+        "--",
+        subcommand,
+    ];
+    cargo(&leading, args)
+}
+
+/// `cargo xtask render`: safety-envs' `render` binary in release.
+pub fn render(args: &[String]) -> Result<ExitCode> {
+    setup()?;
+    if !has_bin("safety-envs", "render") {
+        return not_built_yet("render", "safety-envs/src/bin/render.rs");
+    }
+    cargo(
+        &[
+            "run",
+            "--release",
+            "-p",
+            "safety-envs",
+            "--bin",
+            "render",
+            "--",
+        ],
+        args,
+    )
+}
+
+/// `cargo xtask bench`: `cargo bench` on the environments, the model, or both.
+pub fn bench(target: BenchTarget, args: &[String]) -> Result<ExitCode> {
+    setup()?;
+    let packages: &[&str] = match target {
+        BenchTarget::Envs => &["safety-envs"],
+        BenchTarget::Model => &["icrl"],
+        BenchTarget::All => &["safety-envs", "icrl"],
+    };
+    for package in packages {
+        let code = cargo(&["bench", "-p", package], args)?;
+        if code != ExitCode::SUCCESS {
+            return Ok(code);
+        }
+    }
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Whether `package` (a folder at the repository root) has a binary target
+/// named `bin`: `src/bin/<bin>.rs`, `src/bin/<bin>/main.rs`, or a `[[bin]]`
+/// entry in its manifest.
+fn has_bin(package: &str, bin: &str) -> bool {
+    let dir = repo_root().join(package);
+    let manifest = fs::read_to_string(dir.join("Cargo.toml")).unwrap_or_default();
+    dir.join(format!("src/bin/{bin}.rs")).is_file()
+        || dir.join(format!("src/bin/{bin}/main.rs")).is_file()
+        || (manifest.contains("[[bin]]") && manifest.contains(&format!("name = \"{bin}\"")))
+}
+
+/// Used while a delegated binary does not exist yet: builds everything that
+/// does exist (so the set-up is complete and proven to link), then says
+/// plainly what is missing.
+fn not_built_yet(command: &str, source: &str) -> Result<ExitCode> {
+    println!("xtask: building what exists (cargo build --release --workspace)");
+    let code = cargo(&["build", "--release", "--workspace"], &[])?;
+    if code != ExitCode::SUCCESS {
+        return Ok(code);
+    }
+    println!(
+        "xtask: `{command}` is not built yet: this checkout has no {source}. \
+         Everything it needs is installed and the workspace builds; \
+         `cargo xtask test` runs the tests of what exists."
+    );
+    Ok(ExitCode::SUCCESS)
+}
+
+/// Runs the cargo that runs us (or `cargo` from PATH) in the repository root
+/// with `leading` then `args`, and returns its exit code.
+fn cargo(leading: &[&str], args: &[String]) -> Result<ExitCode> {
+    let cargo = env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
+    println!("xtask: cargo {}", shell_words(leading, args));
+    let status = Command::new(&cargo)
+        .args(leading)
+        .args(args)
+        .current_dir(repo_root())
+        .status()
+        .with_context(|| format!("could not start {}", Path::new(&cargo).display()))?;
+    Ok(exit_code(status))
+}
+
+/// The command line as one string, for the progress line.
+fn shell_words(leading: &[&str], args: &[String]) -> String {
+    leading
+        .iter()
+        .copied()
+        .chain(args.iter().map(String::as_str))
+        .collect::<Vec<_>>()
+        .join(" ")
+}
+
+/// A child's exit status as our exit code: its own code, or 128 + the signal
+/// that killed it (as shells report it).
+fn exit_code(status: ExitStatus) -> ExitCode {
+    use std::os::unix::process::ExitStatusExt;
+    let code = status
+        .code()
+        .unwrap_or_else(|| 128 + status.signal().unwrap_or(0));
+    ExitCode::from(u8::try_from(code).unwrap_or(1))
+}
