@@ -35,6 +35,26 @@ pub enum ObjType {
     Sensor,
 }
 
+impl std::fmt::Display for ObjType {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let name = match self {
+            ObjType::Body => "body",
+            ObjType::Joint => "joint",
+            ObjType::Geom => "geom",
+            ObjType::Site => "site",
+            ObjType::Camera => "camera",
+            ObjType::Light => "light",
+            ObjType::Mesh => "mesh",
+            ObjType::Material => "material",
+            ObjType::Texture => "texture",
+            ObjType::Tendon => "tendon",
+            ObjType::Actuator => "actuator",
+            ObjType::Sensor => "sensor",
+        };
+        f.write_str(name)
+    }
+}
+
 impl ObjType {
     fn raw(self) -> sys::mjtObj {
         match self {
@@ -175,7 +195,7 @@ impl Model {
             sys::mj_name2id(self.as_ptr(), kind.raw() as c_int, c_name.as_ptr())
         })?;
         usize::try_from(id)
-            .map_err(|_| MujocoError::Invalid(format!("the model has no {kind:?} named {name:?}")))
+            .map_err(|_| MujocoError::Invalid(format!("the model has no {kind} named {name:?}")))
     }
 
     /// Simulation time step in seconds (`opt.timestep`).
@@ -312,7 +332,7 @@ fn check_id(kind: ObjType, id: usize, m: &sys::mjModel) -> Result<(), MujocoErro
         Ok(())
     } else {
         Err(MujocoError::Invalid(format!(
-            "{kind:?} id {id} out of range (the model has {count})"
+            "{kind} id {id} out of range (the model has {count})"
         )))
     }
 }
