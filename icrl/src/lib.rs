@@ -1,12 +1,21 @@
 //! Safe in-context reinforcement learning on top of libtorch.
 //!
 //! - [`agent`]: the interface a pretrained in-context agent offers (reset, act).
+//! - [`eval`]: in-context evaluation on held-out edge-oriented tasks, budget sweeps.
+//! - [`plots`]: the paper's evaluation figures and a SafeDarkRoom animation.
+//! - [`stats`]: mean and standard error.
+//! - [`task_seeds`]: the split of task seeds between pretraining and evaluation.
 //! - [`model`]: the one causal transformer (with KV cache) every learner shares.
 //! - [`histories`]: learning histories in HDF5 (DSRL-compatible layout).
 
 pub mod agent;
+pub mod eval;
+pub mod plots;
+pub mod stats;
+pub mod task_seeds;
 pub mod model;
 pub mod histories;
+pub mod ppo_lagrangian;
 
 #[cfg(test)]
 mod tests {
