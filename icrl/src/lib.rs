@@ -15,7 +15,6 @@ pub mod stats;
 pub mod task_seeds;
 pub mod model;
 pub mod histories;
-pub mod ppo_lagrangian;
 
 #[cfg(test)]
 mod tests {
