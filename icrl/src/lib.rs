@@ -7,6 +7,7 @@
 //! - [`task_seeds`]: the split of task seeds between pretraining and evaluation.
 //! - [`model`]: the one causal transformer (with KV cache) every learner shares.
 //! - [`histories`]: learning histories in HDF5 (DSRL-compatible layout).
+//! - [`ppo_lagrangian`]: PPO-Lagrangian, the learner whose histories supervised pretraining distils.
 
 pub mod agent;
 pub mod eval;
@@ -15,6 +16,7 @@ pub mod stats;
 pub mod task_seeds;
 pub mod model;
 pub mod histories;
+pub mod ppo_lagrangian;
 
 #[cfg(test)]
 mod tests {
