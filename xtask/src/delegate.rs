@@ -12,16 +12,25 @@ use anyhow::{Context, Result};
 use crate::BenchTarget;
 use crate::setup::{repo_root, setup};
 
-/// `cargo xtask test`: `cargo test --workspace ARGS`.
+/// `cargo xtask test`: `cargo test --workspace ARGS`, or `cargo test ARGS`
+/// when ARGS pick packages (`-p`), since `--workspace` would override them.
 pub fn test(args: &[String]) -> Result<ExitCode> {
     setup()?;
-    cargo(&["test", "--workspace"], args)
+    let cargo_args = args.iter().take_while(|a| a.as_str() != "--");
+    let picks_packages = cargo_args
+        .map(String::as_str)
+        .any(|a| a == "-p" || a.starts_with("--package") || (a.starts_with("-p") && a.len() > 2));
+    if picks_packages {
+        cargo(&["test"], args)
+    } else {
+        cargo(&["test", "--workspace"], args)
+    }
 }
 
 /// `cargo xtask pretrain|dataset|eval`: `icrl <subcommand> ARGS` in release.
 pub fn icrl(subcommand: &str, args: &[String]) -> Result<ExitCode> {
     setup()?;
-    if !has_bin("icrl", "icrl") {
+    if !has_bin(repo_root(), "icrl", "icrl") {
         return not_built_yet(subcommand, "icrl/src/bin/icrl.rs");
     }
     let leading = [
@@ -40,7 +49,7 @@ pub fn icrl(subcommand: &str, args: &[String]) -> Result<ExitCode> {
 /// `cargo xtask render`: safety-envs' `render` binary in release.
 pub fn render(args: &[String]) -> Result<ExitCode> {
     setup()?;
-    if !has_bin("safety-envs", "render") {
+    if !has_bin(repo_root(), "safety-envs", "render") {
         return not_built_yet("render", "safety-envs/src/bin/render.rs");
     }
     cargo(
@@ -74,11 +83,11 @@ pub fn bench(target: BenchTarget, args: &[String]) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// Whether `package` (a folder at the repository root) has a binary target
-/// named `bin`: `src/bin/<bin>.rs`, `src/bin/<bin>/main.rs`, or a `[[bin]]`
-/// entry in its manifest.
-fn has_bin(package: &str, bin: &str) -> bool {
-    let dir = repo_root().join(package);
+/// Whether `package` (a folder under `root`) has a binary target named `bin`:
+/// `src/bin/<bin>.rs`, `src/bin/<bin>/main.rs`, or a `[[bin]]` entry in its
+/// manifest.
+fn has_bin(root: &Path, package: &str, bin: &str) -> bool {
+    let dir = root.join(package);
     let manifest = fs::read_to_string(dir.join("Cargo.toml")).unwrap_or_default();
     dir.join(format!("src/bin/{bin}.rs")).is_file()
         || dir.join(format!("src/bin/{bin}/main.rs")).is_file()
@@ -134,4 +143,44 @@ fn exit_code(status: ExitStatus) -> ExitCode {
         .code()
         .unwrap_or_else(|| 128 + status.signal().unwrap_or(0));
     ExitCode::from(u8::try_from(code).unwrap_or(1))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn exit_codes_are_forwarded() {
+        let status = Command::new("sh").args(["-c", "exit 3"]).status().unwrap();
+        assert_eq!(exit_code(status), ExitCode::from(3));
+        let status = Command::new("sh")
+            .args(["-c", "kill -9 $$"])
+            .status()
+            .unwrap();
+        assert_eq!(exit_code(status), ExitCode::from(137));
+    }
+
+    #[test]
+    fn finds_binaries_by_file_or_manifest() {
+        let root = repo_root()
+            .join("target")
+            .join("xtask-tests")
+            .join(format!("bins-{}", std::process::id()));
+        let bin_dir = root.join("by-file").join("src").join("bin");
+        fs::create_dir_all(&bin_dir).unwrap();
+        fs::write(bin_dir.join("tool.rs"), "fn main() {}").unwrap();
+        fs::create_dir_all(root.join("by-manifest")).unwrap();
+        fs::write(
+            root.join("by-manifest").join("Cargo.toml"),
+            "[[bin]]\nname = \"tool\"\npath = \"src/tool.rs\"\n",
+        )
+        .unwrap();
+
+        assert!(has_bin(&root, "by-file", "tool"));
+        assert!(has_bin(&root, "by-manifest", "tool"));
+        assert!(!has_bin(&root, "by-file", "other"));
+        assert!(!has_bin(&root, "by-manifest", "other"));
+        assert!(!has_bin(&root, "no-such-package", "tool"));
+        fs::remove_dir_all(&root).unwrap();
+    }
 }

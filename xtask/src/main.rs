@@ -101,3 +101,45 @@ fn main() -> ExitCode {
         ExitCode::FAILURE
     })
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn parse(args: &[&str]) -> Command {
+        let argv = std::iter::once("xtask").chain(args.iter().copied());
+        Cli::try_parse_from(argv).unwrap().command
+    }
+
+    #[test]
+    fn delegated_arguments_pass_through_verbatim() {
+        let Command::Pretrain { args } = parse(&["pretrain", "--env", "car", "--help", "-x"])
+        else {
+            panic!("not parsed as pretrain");
+        };
+        assert_eq!(args, ["--env", "car", "--help", "-x"]);
+
+        let Command::Test { args } = parse(&["test", "-p", "icrl", "--", "--nocapture"]) else {
+            panic!("not parsed as test");
+        };
+        assert_eq!(args, ["-p", "icrl", "--", "--nocapture"]);
+    }
+
+    #[test]
+    fn bench_defaults_to_all() {
+        assert!(matches!(
+            parse(&["bench"]),
+            Command::Bench {
+                target: BenchTarget::All,
+                ..
+            }
+        ));
+        assert!(matches!(
+            parse(&["bench", "model"]),
+            Command::Bench {
+                target: BenchTarget::Model,
+                ..
+            }
+        ));
+    }
+}

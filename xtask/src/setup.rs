@@ -12,6 +12,7 @@
 //! 3. Python's `h5py`, with which the tests read back our HDF5 files.
 
 use std::env;
+use std::ffi::OsString;
 use std::fs;
 use std::path::{Path, PathBuf};
 use std::process::{Command, Stdio};
@@ -67,7 +68,7 @@ pub fn repo_root() -> &'static Path {
 /// Installs everything that is missing; prints one line per step.
 pub fn setup() -> Result<()> {
     let repo = repo_root();
-    let libtorch = Libtorch::locate(repo);
+    let libtorch = Libtorch::locate(repo, env::var_os("LIBTORCH"));
     let fetch_libtorch = matches!(libtorch, Libtorch::Repo { present: false, .. });
 
     let mut packages = SYSTEM_PACKAGES.to_vec();
@@ -92,11 +93,12 @@ enum Libtorch {
 }
 
 impl Libtorch {
-    /// Decides the source: `LIBTORCH` when it names anything other than the
-    /// repository's own folder (which `.cargo/config.toml` sets), else `.libtorch`.
-    fn locate(repo: &Path) -> Self {
+    /// Decides the source from the value of `LIBTORCH`: the user's folder when
+    /// it names anything other than the repository's own (which
+    /// `.cargo/config.toml` sets), else `.libtorch`.
+    fn locate(repo: &Path, libtorch_var: Option<OsString>) -> Self {
         let dir = repo.join(".libtorch");
-        match env::var_os("LIBTORCH").filter(|v| !v.is_empty()) {
+        match libtorch_var.filter(|v| !v.is_empty()) {
             Some(user) if !same_path(Path::new(&user), &dir) => Self::User(PathBuf::from(user)),
             _ => {
                 let present = installed_version(&dir).as_deref() == Some(LIBTORCH_VERSION)
@@ -415,4 +417,86 @@ fn run(cmd: &mut Command, what: &str) -> Result<()> {
         .with_context(|| format!("{what}: could not start {:?}", cmd.get_program()))?;
     ensure!(status.success(), "{what} failed ({status})");
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A fresh scratch folder under the target directory.
+    fn scratch(name: &str) -> PathBuf {
+        let dir = repo_root()
+            .join("target")
+            .join("xtask-tests")
+            .join(format!("{name}-{}", std::process::id()));
+        if dir.exists() {
+            fs::remove_dir_all(&dir).unwrap();
+        }
+        fs::create_dir_all(&dir).unwrap();
+        dir
+    }
+
+    #[test]
+    fn libtorch_is_present_only_with_marker_and_library() {
+        let repo = scratch("locate");
+        let dir = repo.join(".libtorch");
+        let present = |var: Option<&Path>| match Libtorch::locate(
+            &repo,
+            var.map(|p| p.as_os_str().to_owned()),
+        ) {
+            Libtorch::Repo { present, .. } => present,
+            Libtorch::User(_) => panic!("the repository's own folder was taken for the user's"),
+        };
+        assert!(!present(None), "an empty repository has no libtorch");
+
+        fs::create_dir_all(dir.join("lib")).unwrap();
+        fs::write(dir.join("lib").join(TORCH_LIBS[0]), b"").unwrap();
+        assert!(!present(None), "no VERSION marker: an interrupted unpack");
+
+        fs::write(dir.join(VERSION_FILE), "2.10.0\n").unwrap();
+        assert!(!present(None), "another version must be replaced");
+
+        fs::write(dir.join(VERSION_FILE), format!("{LIBTORCH_VERSION}\n")).unwrap();
+        assert!(present(None));
+        // `.cargo/config.toml` sets LIBTORCH to this very folder.
+        assert!(present(Some(&dir)));
+        fs::remove_dir_all(&repo).unwrap();
+    }
+
+    #[test]
+    fn a_user_libtorch_wins() {
+        let repo = scratch("user");
+        let theirs = repo.join("elsewhere");
+        match Libtorch::locate(&repo, Some(theirs.clone().into_os_string())) {
+            Libtorch::User(dir) => assert_eq!(dir, theirs),
+            Libtorch::Repo { .. } => panic!("LIBTORCH set by the user was ignored"),
+        }
+        fs::remove_dir_all(&repo).unwrap();
+    }
+
+    #[test]
+    fn dpkg_query_reports_unknown_packages_as_missing() {
+        let unknown = "no-such-package-for-xtask-tests";
+        // Every Debian system has dpkg itself installed.
+        let Some(missing) = missing_packages(&["dpkg", unknown]).unwrap() else {
+            return; // not Debian: nothing to check
+        };
+        assert_eq!(missing, vec![unknown.to_owned()]);
+    }
+
+    #[test]
+    fn find_wheel_picks_by_prefix() {
+        let dir = scratch("wheels");
+        for name in [
+            "torch-2.11.0-cp311-cp311-manylinux_2_28_x86_64.whl",
+            "nvidia_cuda_runtime-13.0.96-py3-none-manylinux2014_x86_64.whl",
+            "nvidia_cuda_cupti-13.0.85-py3-none-manylinux_2_25_x86_64.whl",
+        ] {
+            fs::write(dir.join(name), b"").unwrap();
+        }
+        let found = find_wheel(&dir, "nvidia_cuda_cupti-").unwrap();
+        assert!(found.ends_with("nvidia_cuda_cupti-13.0.85-py3-none-manylinux_2_25_x86_64.whl"));
+        assert!(find_wheel(&dir, "torch-2.10.0-").is_err());
+        fs::remove_dir_all(&dir).unwrap();
+    }
 }
