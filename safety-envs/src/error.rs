@@ -34,6 +34,10 @@ pub enum EnvError {
     /// A call in the wrong state, e.g. `step` after the episode ended.
     #[error("{0}")]
     State(String),
+    /// MuJoCo found a NaN or huge value and reset the simulation state (or
+    /// zeroed the controls) during a step; the episode is over, call `reset`.
+    #[error("simulation became unstable: {0}")]
+    Unstable(String),
     /// An error from environment `index` of a `VecEnv`.
     #[error("environment {index}: {source}")]
     InEnv { index: usize, source: Box<EnvError> },

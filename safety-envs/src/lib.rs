@@ -4,6 +4,7 @@
 //! - [`env`]: the one CMDP interface ([`CmdpEnv`]).
 //! - [`spawn`]: centre- and edge-oriented task sampling.
 //! - [`darkroom`]: SafeDarkRoom, the 9x9 grid world.
+//! - [`nav`]: SafeDarkMujoco Point and Car, the MuJoCo goal tasks.
 //! - [`make`]: environments by name ([`EnvName`], [`make_env`]).
 //! - [`vec_env`]: [`VecEnv`], many environments stepped across threads.
 
@@ -12,6 +13,7 @@ pub mod env;
 pub mod error;
 pub mod make;
 pub mod mujoco;
+pub mod nav;
 pub mod spawn;
 pub mod vec_env;
 
@@ -19,6 +21,7 @@ pub use darkroom::{DarkRoomConfig, SafeDarkRoom};
 pub use env::{Action, CmdpEnv, Space, StepOutcome};
 pub use error::{EnvError, MujocoError};
 pub use make::{EnvName, EnvOptions, make_env, spawn_config};
+pub use nav::{NavConfig, Robot, SafeDarkMujoco};
 pub use spawn::{Cell, Distance, Orientation, SpawnConfig, Task, sample_task};
 pub use vec_env::{VecAction, VecEnv};
 
@@ -28,6 +31,7 @@ pub mod prelude {
     pub use crate::env::{Action, CmdpEnv, Space, StepOutcome};
     pub use crate::error::{EnvError, MujocoError};
     pub use crate::make::{EnvName, EnvOptions, make_env, spawn_config};
+    pub use crate::nav::{NavConfig, Robot, SafeDarkMujoco};
     pub use crate::spawn::{Cell, Distance, Orientation, SpawnConfig, Task, sample_task};
     pub use crate::vec_env::{VecAction, VecEnv};
 }

@@ -67,12 +67,7 @@ pub struct EnvOptions {
 pub fn spawn_config(name: EnvName) -> SpawnConfig {
     match name {
         EnvName::DarkRoom => DarkRoomConfig::default().spawn_config(),
-        // The MuJoCo arena's grid (see nav.rs): 5x5 cells, 8 hazards.
-        EnvName::Point | EnvName::Car => SpawnConfig {
-            grid_size: 5,
-            n_obstacles: 8,
-            ..SpawnConfig::darkroom()
-        },
+        EnvName::Point | EnvName::Car => crate::nav::NavConfig::default().spawn_config(),
     }
 }
 
@@ -86,8 +81,17 @@ pub fn make_env(name: EnvName, options: &EnvOptions) -> Result<Box<dyn CmdpEnv>,
             }
             Ok(Box::new(SafeDarkRoom::new(config)?))
         }
-        EnvName::Point | EnvName::Car => Err(EnvError::InvalidConfig(format!(
-            "{name}: SafeDarkMujoco is not available yet in this build"
-        ))),
+        EnvName::Point | EnvName::Car => {
+            let robot = if name == EnvName::Point {
+                crate::nav::Robot::Point
+            } else {
+                crate::nav::Robot::Car
+            };
+            let mut config = crate::nav::NavConfig::new(robot);
+            if let Some(t) = options.max_episode_steps {
+                config.max_episode_steps = t;
+            }
+            Ok(Box::new(crate::nav::SafeDarkMujoco::new(config)?))
+        }
     }
 }
