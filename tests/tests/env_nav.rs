@@ -222,10 +222,6 @@ fn actions(n: usize) -> Vec<[f32; 2]> {
     (0..n).map(|_| [next(), next()]).collect()
 }
 
-fn env_obs_dim(robot: Robot) -> usize {
-    robot.obs_dim()
-}
-
 fn rollout(robot: Robot, seed: u64) -> Vec<u32> {
     let mut env = SafeDarkMujoco::new(NavConfig::new(robot)).unwrap();
     let task = sample_task(&env.config().spawn_config(), Orientation::Edge, seed).unwrap();
