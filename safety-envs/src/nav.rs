@@ -56,7 +56,7 @@ use std::str::FromStr;
 
 use crate::EnvError;
 use crate::env::{Action, CmdpEnv, Space, StepOutcome};
-use crate::mujoco::{Data, Model, ObjType};
+use crate::mujoco::{Camera, Data, Model, ObjType, RenderError, Renderer, RgbImage};
 use crate::spawn::{Cell, Orientation, SpawnConfig, Task, sample_task};
 
 pub use assets::MAX_HAZARDS;
@@ -324,6 +324,17 @@ impl SafeDarkMujoco {
     /// The simulation state (for rendering and tests).
     pub fn data(&self) -> &Data {
         &self.data
+    }
+
+    /// Renders the current state (robot, goal, hazards) with `renderer` (made
+    /// for [`SafeDarkMujoco::model`]); `Camera::Named("top".into())` looks
+    /// straight down on the arena.
+    pub fn render(
+        &mut self,
+        renderer: &mut Renderer,
+        camera: &Camera,
+    ) -> Result<RgbImage, RenderError> {
+        renderer.render(&self.model, &mut self.data, camera)
     }
 
     /// The goal's xy position.

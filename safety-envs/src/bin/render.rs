@@ -3,18 +3,27 @@
 //!
 //! ```text
 //! render --scene FILE.xml --out frame.png [--width W --height H --camera NAME]
+//! render --env {darkroom,point,car} --seed N [--edge] --out task.png
+//! render --env {darkroom,point,car} --seed N [--edge] --rollout STEPS --out rollout.gif
 //! ```
 //!
-//! Reached through `cargo xtask render ...`. What to draw is a [`Source`]:
-//! today an MJCF file; environments (`--env`) plug in as another variant.
+//! Reached through `cargo xtask render ...`. What to draw is a [`Source`]: an
+//! MJCF file, or an environment with the task drawn from seed `N`
+//! (centre-oriented, or edge-oriented with `--edge`), seen from above: robot
+//! red, goal green, hazards blue. SafeDarkRoom is drawn as a grid by hand.
+//! `--rollout STEPS` animates a uniformly random policy for that many agent
+//! steps (episodes restart in the same task) into a GIF.
 
 use std::path::PathBuf;
 use std::process::ExitCode;
 use std::time::Instant;
 
-use anyhow::{Context, Result};
+use anyhow::{Context, Result, bail};
 use clap::Parser;
-use safety_envs::mujoco::{Camera, Data, Model, Quality, Renderer};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use safety_envs::mujoco::{Camera, Data, Model, Quality, Renderer, RgbImage};
+use safety_envs::prelude::*;
 
 /// Render a MuJoCo scene off-screen to a PNG.
 #[derive(Debug, Parser)]
@@ -37,6 +46,17 @@ struct Args {
     /// Skip shadows, reflections and multisampling (several times faster).
     #[arg(long)]
     fast: bool,
+    /// With --env: the task seed (default 0).
+    #[arg(long, conflicts_with = "scene")]
+    seed: Option<u64>,
+    /// With --env: draw the task edge-oriented (evaluation) instead of
+    /// centre-oriented (pretraining).
+    #[arg(long, conflicts_with = "scene")]
+    edge: bool,
+    /// With --env: animate this many agent steps of a random policy into a GIF.
+    #[arg(long, value_name = "STEPS", conflicts_with = "scene",
+          value_parser = clap::value_parser!(u32).range(1..=10_000))]
+    rollout: Option<u32>,
 }
 
 /// Exactly one thing to render.
@@ -46,31 +66,39 @@ struct SourceArgs {
     /// An MJCF scene file.
     #[arg(long, value_name = "FILE.xml")]
     scene: Option<PathBuf>,
-    // Environments add their flags here (`--env {darkroom,point,car}`), and
-    // their options (`--seed N`, `--rollout N`) as fields of `Args`, then a
-    // `Source::Env` variant below.
+    /// An environment: darkroom, point or car.
+    #[arg(long, value_parser = parse_env_name)]
+    env: Option<EnvName>,
+}
+
+fn parse_env_name(s: &str) -> Result<EnvName, String> {
+    s.parse().map_err(|e: EnvError| e.to_string())
 }
 
 /// What to render, decided from the flags.
 enum Source {
     Scene(PathBuf),
+    Env(EnvName),
 }
 
 impl SourceArgs {
     fn source(self) -> Source {
-        match self.scene {
-            Some(path) => Source::Scene(path),
+        match (self.scene, self.env) {
+            (Some(path), _) => Source::Scene(path),
+            (None, Some(env)) => Source::Env(env),
             // clap's group makes exactly one flag present.
-            None => unreachable!("clap requires one source flag"),
+            (None, None) => unreachable!("clap requires one source flag"),
         }
     }
 }
 
 fn main() -> ExitCode {
     let args = Args::parse();
-    let camera = match &args.camera {
-        Some(name) => Camera::Named(name.clone()),
-        None => Camera::ModelDefault,
+    let camera = match (&args.camera, &args.source.env) {
+        (Some(name), _) => Camera::Named(name.clone()),
+        // The arena's own top-down camera.
+        (None, Some(_)) => Camera::Named("top".into()),
+        (None, None) => Camera::ModelDefault,
     };
     let quality = if args.fast {
         Quality::Fast
@@ -80,6 +108,25 @@ fn main() -> ExitCode {
     let size = (args.width as usize, args.height as usize);
     let result = match args.source.source() {
         Source::Scene(path) => render_scene(&path, &args.out, size, &camera, quality),
+        Source::Env(name) => {
+            let orientation = if args.edge {
+                Orientation::Edge
+            } else {
+                Orientation::Centre
+            };
+            let view = EnvView {
+                name,
+                seed: args.seed.unwrap_or(0),
+                orientation,
+                size,
+                camera,
+                quality,
+            };
+            match args.rollout {
+                None => view.task_png(&args.out),
+                Some(steps) => view.rollout_gif(steps as usize, &args.out),
+            }
+        }
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
@@ -117,4 +164,214 @@ fn render_scene(
         started.elapsed().as_secs_f64()
     );
     Ok(())
+}
+
+/// One environment and task to draw.
+struct EnvView {
+    name: EnvName,
+    seed: u64,
+    orientation: Orientation,
+    size: (usize, usize),
+    camera: Camera,
+    quality: Quality,
+}
+
+/// Colours shared by the MuJoCo arena (`assets/xml/arena.xml`) and the grid.
+const GOAL_RGB: [u8; 3] = [26, 204, 51];
+const HAZARD_RGB: [u8; 3] = [64, 89, 255];
+const ROBOT_RGB: [u8; 3] = [189, 11, 47];
+const FLOOR_RGB: [u8; 3] = [232, 232, 228];
+const LINE_RGB: [u8; 3] = [170, 170, 165];
+const TRAIL_RGB: [u8; 3] = [240, 160, 170];
+
+impl EnvView {
+    fn task(&self) -> Result<Task> {
+        Ok(sample_task(
+            &spawn_config(self.name),
+            self.orientation,
+            self.seed,
+        )?)
+    }
+
+    /// Writes the task (robot at its start) as a PNG.
+    fn task_png(&self, out: &std::path::Path) -> Result<()> {
+        let started = Instant::now();
+        let task = self.task()?;
+        let image = match self.name {
+            EnvName::DarkRoom => {
+                let mut env = SafeDarkRoom::new(DarkRoomConfig::default())?;
+                env.set_task(&task)?;
+                env.reset(self.seed, &mut [0.0; 2])?;
+                draw_darkroom(&env, &[], self.size)
+            }
+            EnvName::Point | EnvName::Car => {
+                let mut env = self.nav_env(&task)?;
+                let mut renderer =
+                    Renderer::with_quality(env.model(), self.size.0, self.size.1, self.quality)?;
+                let mut obs = vec![0.0; env.observation_space().flat_dim()];
+                env.reset(self.seed, &mut obs)?;
+                env.render(&mut renderer, &self.camera)?
+            }
+        };
+        image.save_png(out)?;
+        println!(
+            "wrote {} ({} task, seed {}, {}-oriented: goal {:?}, {} obstacles) in {:.2} s",
+            out.display(),
+            self.name,
+            self.seed,
+            self.orientation,
+            (task.goal.row, task.goal.col),
+            task.obstacles.len(),
+            started.elapsed().as_secs_f64()
+        );
+        Ok(())
+    }
+
+    fn nav_env(&self, task: &Task) -> Result<SafeDarkMujoco> {
+        let robot = match self.name {
+            EnvName::Point => Robot::Point,
+            EnvName::Car => Robot::Car,
+            EnvName::DarkRoom => bail!("darkroom is not a MuJoCo environment"),
+        };
+        let mut env = SafeDarkMujoco::new(NavConfig::new(robot))?;
+        env.set_task(task)?;
+        Ok(env)
+    }
+
+    /// Animates `steps` agent steps of a uniformly random policy (seeded by
+    /// `--seed`) into a GIF; episodes restart in the same task.
+    fn rollout_gif(&self, steps: usize, out: &std::path::Path) -> Result<()> {
+        let started = Instant::now();
+        let task = self.task()?;
+        let mut rng = ChaCha8Rng::seed_from_u64(self.seed);
+        let (w, h) = self.size;
+        let (gw, gh) = (u16::try_from(w)?, u16::try_from(h)?);
+        let file =
+            std::fs::File::create(out).with_context(|| format!("creating {}", out.display()))?;
+        let mut encoder = gif::Encoder::new(std::io::BufWriter::new(file), gw, gh, &[])?;
+        encoder.set_repeat(gif::Repeat::Infinite)?;
+        let mut frame = |image: &RgbImage, delay_cs: u16| -> Result<()> {
+            let mut f = gif::Frame::from_rgb_speed(gw, gh, &image.pixels, 10);
+            f.delay = delay_cs;
+            encoder.write_frame(&f)?;
+            Ok(())
+        };
+        let (mut episodes, mut total_reward, mut total_cost) = (1, 0.0, 0.0);
+        match self.name {
+            EnvName::DarkRoom => {
+                let mut env = SafeDarkRoom::new(DarkRoomConfig::default())?;
+                env.set_task(&task)?;
+                let mut obs = [0.0; 2];
+                env.reset(self.seed, &mut obs)?;
+                let mut trail = vec![env.position()];
+                frame(&draw_darkroom(&env, &trail, self.size), 20)?;
+                for _ in 0..steps {
+                    let out = env.step(Action::Discrete(rng.gen_range(0..5)), &mut obs)?;
+                    (total_reward, total_cost) = (total_reward + out.reward, total_cost + out.cost);
+                    trail.push(env.position());
+                    frame(&draw_darkroom(&env, &trail, self.size), 20)?;
+                    if out.done() {
+                        env.reset(self.seed, &mut obs)?;
+                        trail = vec![env.position()];
+                        episodes += 1;
+                    }
+                }
+            }
+            EnvName::Point | EnvName::Car => {
+                let mut env = self.nav_env(&task)?;
+                let mut renderer = Renderer::with_quality(env.model(), w, h, self.quality)?;
+                let mut obs = vec![0.0; env.observation_space().flat_dim()];
+                env.reset(self.seed, &mut obs)?;
+                frame(&env.render(&mut renderer, &self.camera)?, 4)?;
+                for _ in 0..steps {
+                    let a = [rng.gen_range(-1.0..=1.0), rng.gen_range(-1.0..=1.0)];
+                    let out = env.step(Action::Continuous(&a), &mut obs)?;
+                    (total_reward, total_cost) = (total_reward + out.reward, total_cost + out.cost);
+                    frame(&env.render(&mut renderer, &self.camera)?, 4)?;
+                    if out.done() {
+                        env.reset(self.seed, &mut obs)?;
+                        episodes += 1;
+                    }
+                }
+            }
+        }
+        println!(
+            "wrote {} ({} random-policy steps of {} task seed {}, {}-oriented; {episodes} episode(s), \
+             reward {total_reward}, cost {total_cost}) in {:.2} s",
+            out.display(),
+            steps,
+            self.name,
+            self.seed,
+            self.orientation,
+            started.elapsed().as_secs_f64()
+        );
+        Ok(())
+    }
+}
+
+/// Draws SafeDarkRoom from above: floor cells, obstacles blue, goal green,
+/// the start cell outlined, the cells visited in `trail` pink, the agent a red
+/// disc. Row 0 is the top of the image, as in the observation.
+fn draw_darkroom(env: &SafeDarkRoom, trail: &[Cell], (width, height): (usize, usize)) -> RgbImage {
+    let task = env.task();
+    let g = task.grid_size;
+    let cell = (width.min(height) / g).max(3);
+    let (x0, y0) = ((width - cell * g) / 2, (height - cell * g) / 2);
+    let mut pixels = vec![255u8; width * height * 3];
+    let mut put = |x: usize, y: usize, rgb: [u8; 3]| {
+        if x < width && y < height {
+            let i = 3 * (y * width + x);
+            pixels[i..i + 3].copy_from_slice(&rgb);
+        }
+    };
+    let centre = Cell::centre(g);
+    for row in 0..g {
+        for col in 0..g {
+            let c = Cell { row, col };
+            let fill = if c == task.goal {
+                GOAL_RGB
+            } else if task.obstacles.contains(&c) {
+                HAZARD_RGB
+            } else if trail.contains(&c) {
+                TRAIL_RGB
+            } else {
+                FLOOR_RGB
+            };
+            for dy in 0..cell {
+                for dx in 0..cell {
+                    let border = dx == 0 || dy == 0 || dx == cell - 1 || dy == cell - 1;
+                    let start_ring =
+                        c == centre && (dx < 3 || dy < 3 || dx >= cell - 3 || dy >= cell - 3);
+                    let rgb = if start_ring {
+                        ROBOT_RGB
+                    } else if border {
+                        LINE_RGB
+                    } else {
+                        fill
+                    };
+                    put(x0 + col * cell + dx, y0 + row * cell + dy, rgb);
+                }
+            }
+        }
+    }
+    // The agent: a disc in its cell.
+    let p = env.position();
+    let (cx, cy) = (x0 + p.col * cell + cell / 2, y0 + p.row * cell + cell / 2);
+    let r = (cell as f64 * 0.32) as i64;
+    for dy in -r..=r {
+        for dx in -r..=r {
+            if dx * dx + dy * dy <= r * r {
+                put(
+                    (cx as i64 + dx) as usize,
+                    (cy as i64 + dy) as usize,
+                    ROBOT_RGB,
+                );
+            }
+        }
+    }
+    RgbImage {
+        width,
+        height,
+        pixels,
+    }
 }
