@@ -5,16 +5,24 @@
 //! - [`plots`]: the paper's evaluation figures and a SafeDarkRoom animation.
 //! - [`stats`]: mean and standard error.
 //! - [`task_seeds`]: the split of task seeds between pretraining and evaluation.
+//! - [`checkpoint`]: run folders, atomic checkpoints with manifests, metrics (JSONL).
+//! - [`eppo`]: EPPO, safe reinforcement pretraining (Algorithm 1), and its frozen agent.
+//! - [`optim`]: Adam whose moments can be checkpointed.
+//! - [`presets`]: built-in TOML presets and `--set key=value` overrides.
 //! - [`model`]: the one causal transformer (with KV cache) every learner shares.
 //! - [`histories`]: learning histories in HDF5 (DSRL-compatible layout).
 //! - [`ppo_lagrangian`]: PPO-Lagrangian, the learner whose histories supervised pretraining distils.
 
 pub mod agent;
+pub mod checkpoint;
+pub mod eppo;
 pub mod eval;
 pub mod plots;
 pub mod stats;
 pub mod task_seeds;
 pub mod model;
+pub mod optim;
+pub mod presets;
 pub mod histories;
 pub mod ppo_lagrangian;
 

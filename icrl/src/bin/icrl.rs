@@ -1,0 +1,92 @@
+//! `icrl`: the command line of safe in-context RL. `main` parses and runs one
+//! subcommand; each subcommand's work is a library function.
+
+use std::path::PathBuf;
+use std::process::ExitCode;
+
+use clap::{Args, Parser, Subcommand};
+
+#[derive(Debug, Parser)]
+#[command(
+    name = "icrl",
+    version,
+    about = "Safe in-context RL: pretraining and evaluation"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Pretrain an in-context agent (EPPO: Algorithm 1 of the paper).
+    Pretrain(PretrainArgs),
+}
+
+#[derive(Debug, Args)]
+struct PretrainArgs {
+    /// Environment.
+    #[arg(long, value_parser = ["darkroom", "point", "car"])]
+    env: String,
+    /// Learner.
+    #[arg(long, default_value = "eppo", value_parser = ["eppo"])]
+    method: String,
+    /// Preset: `table1` (the paper's settings, a GPU preset) or `quick` (2 CPU cores, about an hour).
+    #[arg(long, default_value = "quick", value_parser = ["table1", "quick"])]
+    preset: String,
+    /// Device; overrides the preset's.
+    #[arg(long, value_parser = ["cpu", "cuda"])]
+    device: Option<String>,
+    /// Continue a run: its folder (latest checkpoint) or one checkpoints/step_N folder.
+    #[arg(long, value_name = "DIR")]
+    resume: Option<PathBuf>,
+    /// Seed; overrides the preset's.
+    #[arg(long)]
+    seed: Option<u64>,
+    /// Override any config field, e.g. `--set total_updates=500 --set model.n_layers=2`.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    set: Vec<String>,
+    /// Folder that receives the run folder.
+    #[arg(long, default_value = "runs")]
+    out: PathBuf,
+}
+
+fn pretrain(args: PretrainArgs) -> anyhow::Result<()> {
+    let mut sets = args.set;
+    if let Some(seed) = args.seed {
+        sets.push(format!("seed={seed}"));
+    }
+    if let Some(device) = &args.device {
+        sets.push(format!("device=\"{device}\""));
+    }
+    let report = icrl::eppo::pretrain_command(
+        &args.env,
+        &args.preset,
+        args.resume.as_deref(),
+        &sets,
+        &args.out,
+    )?;
+    println!(
+        "run {} finished: {} updates, {} env steps, lambda {:.4}; last checkpoint {}",
+        report.run_dir.display(),
+        report.updates,
+        report.env_steps,
+        report.lambda,
+        report.last_checkpoint.display()
+    );
+    Ok(())
+}
+
+fn main() -> ExitCode {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Pretrain(args) => pretrain(args),
+    };
+    match result {
+        Ok(()) => ExitCode::SUCCESS,
+        Err(e) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}

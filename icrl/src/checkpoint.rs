@@ -1,0 +1,418 @@
+//! Run folders, checkpoints and metrics, shared by every learner.
+//!
+//! A run lives in `runs/{env}__{method}__{seed}__{time}/`:
+//! - `config.toml`: the fully resolved configuration of the run;
+//! - `metrics.jsonl`: one JSON object per line, always with `env_steps` and
+//!   `updates`, plus the learner's fixed metric names (EPPO: `episodic_return`,
+//!   `episodic_cost`, `lambda`, `losses/*`, `charts/*`; see `eppo.rs`);
+//! - `checkpoints/step_N/`: one folder per checkpoint, written atomically
+//!   (filled under `checkpoints/.tmp_step_N/`, then renamed), holding the
+//!   learner's files and a `manifest.json` naming the method, environment,
+//!   model shape, format version and the size of every file, so a truncated
+//!   or foreign checkpoint is refused with an error that names the file.
+
+use std::collections::BTreeMap;
+use std::fs;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+
+use serde::{Deserialize, Serialize};
+use thiserror::Error;
+
+/// Version of the checkpoint layout; bumped when files or their meaning change.
+pub const FORMAT_VERSION: u32 = 1;
+
+/// Name of the manifest inside a checkpoint folder.
+pub const MANIFEST: &str = "manifest.json";
+
+/// A run folder or checkpoint that cannot be written or used.
+#[derive(Debug, Error)]
+pub enum CheckpointError {
+    #[error("{path}: {source}")]
+    Io {
+        path: PathBuf,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("{path}: {problem}; {fix}")]
+    Invalid {
+        path: PathBuf,
+        problem: String,
+        fix: String,
+    },
+    #[error("{path}: checkpoint is for {what} {found:?}, this run has {expected:?}; {fix}")]
+    Mismatch {
+        path: PathBuf,
+        what: String,
+        found: String,
+        expected: String,
+        fix: String,
+    },
+}
+
+fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CheckpointError + '_ {
+    move |source| CheckpointError::Io {
+        path: path.to_path_buf(),
+        source,
+    }
+}
+
+/// What a checkpoint says about itself.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Manifest {
+    /// [`FORMAT_VERSION`] at writing time.
+    pub format_version: u32,
+    /// Learner, e.g. `eppo`, `ad`.
+    pub method: String,
+    /// Environment, e.g. `darkroom`.
+    pub env: String,
+    /// Model shape and input/output sizes (learner-defined JSON object).
+    pub model: serde_json::Value,
+    /// Updates done when the checkpoint was written.
+    pub updates: u64,
+    /// Size in bytes of every other file in the folder.
+    pub files: BTreeMap<String, u64>,
+}
+
+impl Manifest {
+    /// Refuses a checkpoint of another method, environment or model shape.
+    pub fn check_compatible(
+        &self,
+        dir: &Path,
+        method: &str,
+        env: &str,
+        model: &serde_json::Value,
+    ) -> Result<(), CheckpointError> {
+        let fix = "resume with the same --env, method and model settings as the original run, or start a new run";
+        let pairs = [
+            ("method", self.method.clone(), method.to_string()),
+            ("env", self.env.clone(), env.to_string()),
+            ("model", self.model.to_string(), model.to_string()),
+        ];
+        for (what, found, expected) in pairs {
+            if found != expected {
+                return Err(CheckpointError::Mismatch {
+                    path: dir.join(MANIFEST),
+                    what: what.into(),
+                    found,
+                    expected,
+                    fix: fix.into(),
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Reads and verifies a checkpoint folder's manifest: the format version, and
+/// that every listed file exists with the recorded size (catches truncation).
+pub fn read_manifest(dir: &Path) -> Result<Manifest, CheckpointError> {
+    let path = dir.join(MANIFEST);
+    let text = fs::read_to_string(&path).map_err(|e| CheckpointError::Invalid {
+        path: path.clone(),
+        problem: format!("cannot read the manifest ({e})"),
+        fix: "point --resume at a run folder or a checkpoints/step_N folder written by `icrl pretrain`".into(),
+    })?;
+    let manifest: Manifest = serde_json::from_str(&text).map_err(|e| CheckpointError::Invalid {
+        path: path.clone(),
+        problem: format!("malformed manifest ({e})"),
+        fix: "the checkpoint is damaged: resume from an earlier checkpoints/step_N folder".into(),
+    })?;
+    if manifest.format_version != FORMAT_VERSION {
+        return Err(CheckpointError::Invalid {
+            path,
+            problem: format!(
+                "format version {} (this build reads {FORMAT_VERSION})",
+                manifest.format_version
+            ),
+            fix: "use the icrl version that wrote it, or start a new run".into(),
+        });
+    }
+    for (name, &size) in &manifest.files {
+        let file = dir.join(name);
+        let got = fs::metadata(&file)
+            .map(|m| m.len())
+            .map_err(|e| CheckpointError::Invalid {
+                path: file.clone(),
+                problem: format!("listed in the manifest but unreadable ({e})"),
+                fix:
+                    "the checkpoint is incomplete: resume from an earlier checkpoints/step_N folder"
+                        .into(),
+            })?;
+        if got != size {
+            return Err(CheckpointError::Invalid {
+                path: file,
+                problem: format!(
+                    "{got} bytes, the manifest records {size} (truncated or replaced)"
+                ),
+                fix: "resume from an earlier checkpoints/step_N folder".into(),
+            });
+        }
+    }
+    Ok(manifest)
+}
+
+/// A run folder.
+#[derive(Clone, Debug)]
+pub struct RunDir {
+    pub path: PathBuf,
+}
+
+/// UTC `YYYYMMDDTHHMMSS` of now (no time-zone crate needed).
+fn utc_stamp() -> String {
+    let secs = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map(|d| d.as_secs() as i64)
+        .unwrap_or(0);
+    let (days, rem) = (secs.div_euclid(86_400), secs.rem_euclid(86_400));
+    // Civil date from days since 1970-01-01 (H. Hinnant's algorithm).
+    let z = days + 719_468;
+    let era = z.div_euclid(146_097);
+    let doe = z - era * 146_097;
+    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
+    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
+    let mp = (5 * doy + 2) / 153;
+    let d = doy - (153 * mp + 2) / 5 + 1;
+    let m = if mp < 10 { mp + 3 } else { mp - 9 };
+    let y = yoe + era * 400 + i64::from(m <= 2);
+    format!(
+        "{y:04}{m:02}{d:02}T{:02}{:02}{:02}",
+        rem / 3600,
+        rem % 3600 / 60,
+        rem % 60
+    )
+}
+
+impl RunDir {
+    /// Creates `root/{env}__{method}__{seed}__{time}/checkpoints/`.
+    pub fn create(
+        root: &Path,
+        env: &str,
+        method: &str,
+        seed: u64,
+    ) -> Result<Self, CheckpointError> {
+        let path = root.join(format!("{env}__{method}__{seed}__{}", utc_stamp()));
+        fs::create_dir_all(path.join("checkpoints")).map_err(io(&path))?;
+        Ok(RunDir { path })
+    }
+
+    /// Opens an existing run folder.
+    pub fn open(path: &Path) -> Result<Self, CheckpointError> {
+        if !path.join("checkpoints").is_dir() {
+            return Err(CheckpointError::Invalid {
+                path: path.to_path_buf(),
+                problem: "not a run folder (no checkpoints/ inside)".into(),
+                fix: "pass the runs/{env}__{method}__{seed}__{time} folder of an earlier run"
+                    .into(),
+            });
+        }
+        Ok(RunDir {
+            path: path.to_path_buf(),
+        })
+    }
+
+    /// Resolves `--resume PATH`: a run folder (its latest checkpoint) or one
+    /// `checkpoints/step_N` folder. Returns the run and the checkpoint folder.
+    pub fn resolve_resume(path: &Path) -> Result<(Self, PathBuf), CheckpointError> {
+        if path.join(MANIFEST).is_file() {
+            let run_path =
+                path.parent()
+                    .and_then(Path::parent)
+                    .ok_or_else(|| CheckpointError::Invalid {
+                        path: path.to_path_buf(),
+                        problem: "checkpoint folder outside a run folder".into(),
+                        fix: "pass the run folder instead".into(),
+                    })?;
+            return Ok((RunDir::open(run_path)?, path.to_path_buf()));
+        }
+        let run = RunDir::open(path)?;
+        let ckpt = run
+            .latest_checkpoint()?
+            .ok_or_else(|| CheckpointError::Invalid {
+                path: run.path.join("checkpoints"),
+                problem: "no checkpoint has been written yet".into(),
+                fix: "start a new run without --resume".into(),
+            })?;
+        Ok((run, ckpt))
+    }
+
+    /// `config.toml` of the run.
+    pub fn config_path(&self) -> PathBuf {
+        self.path.join("config.toml")
+    }
+
+    /// `metrics.jsonl` of the run.
+    pub fn metrics_path(&self) -> PathBuf {
+        self.path.join("metrics.jsonl")
+    }
+
+    /// Writes the resolved configuration.
+    pub fn write_config(&self, toml_text: &str) -> Result<(), CheckpointError> {
+        let path = self.config_path();
+        fs::write(&path, toml_text).map_err(io(&path))
+    }
+
+    /// The `checkpoints/step_N` folder with the largest N, if any.
+    pub fn latest_checkpoint(&self) -> Result<Option<PathBuf>, CheckpointError> {
+        let dir = self.path.join("checkpoints");
+        let mut best: Option<(u64, PathBuf)> = None;
+        for entry in fs::read_dir(&dir).map_err(io(&dir))? {
+            let entry = entry.map_err(io(&dir))?;
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if let Some(n) = name
+                .strip_prefix("step_")
+                .and_then(|s| s.parse::<u64>().ok())
+                && best.as_ref().is_none_or(|(b, _)| n > *b)
+            {
+                best = Some((n, entry.path()));
+            }
+        }
+        Ok(best.map(|(_, p)| p))
+    }
+
+    /// Writes `checkpoints/step_{updates}` atomically: `write` fills a
+    /// temporary folder, the manifest (with every file's size) is added, and
+    /// the folder is renamed into place. Keeps the newest `keep` checkpoints.
+    pub fn write_checkpoint(
+        &self,
+        updates: u64,
+        method: &str,
+        env: &str,
+        model: serde_json::Value,
+        keep: usize,
+        write: impl FnOnce(&Path) -> Result<(), CheckpointError>,
+    ) -> Result<PathBuf, CheckpointError> {
+        let root = self.path.join("checkpoints");
+        let tmp = root.join(format!(".tmp_step_{updates}"));
+        let dest = root.join(format!("step_{updates}"));
+        if tmp.exists() {
+            fs::remove_dir_all(&tmp).map_err(io(&tmp))?;
+        }
+        fs::create_dir_all(&tmp).map_err(io(&tmp))?;
+        write(&tmp)?;
+        let mut files = BTreeMap::new();
+        for entry in fs::read_dir(&tmp).map_err(io(&tmp))? {
+            let entry = entry.map_err(io(&tmp))?;
+            let len = entry.metadata().map_err(io(&entry.path()))?.len();
+            files.insert(entry.file_name().to_string_lossy().into_owned(), len);
+        }
+        let manifest = Manifest {
+            format_version: FORMAT_VERSION,
+            method: method.into(),
+            env: env.into(),
+            model,
+            updates,
+            files,
+        };
+        let mpath = tmp.join(MANIFEST);
+        let text =
+            serde_json::to_string_pretty(&manifest).map_err(|e| CheckpointError::Invalid {
+                path: mpath.clone(),
+                problem: e.to_string(),
+                fix: "report this bug".into(),
+            })?;
+        let mut f = fs::File::create(&mpath).map_err(io(&mpath))?;
+        f.write_all(text.as_bytes()).map_err(io(&mpath))?;
+        f.sync_all().map_err(io(&mpath))?;
+        if dest.exists() {
+            fs::remove_dir_all(&dest).map_err(io(&dest))?;
+        }
+        fs::rename(&tmp, &dest).map_err(io(&dest))?;
+        self.prune(keep)?;
+        Ok(dest)
+    }
+
+    /// Removes all but the newest `keep` checkpoints (keep 0 = keep all).
+    fn prune(&self, keep: usize) -> Result<(), CheckpointError> {
+        if keep == 0 {
+            return Ok(());
+        }
+        let dir = self.path.join("checkpoints");
+        let mut steps: Vec<(u64, PathBuf)> = Vec::new();
+        for entry in fs::read_dir(&dir).map_err(io(&dir))? {
+            let entry = entry.map_err(io(&dir))?;
+            let name = entry.file_name().to_string_lossy().into_owned();
+            if let Some(n) = name
+                .strip_prefix("step_")
+                .and_then(|s| s.parse::<u64>().ok())
+            {
+                steps.push((n, entry.path()));
+            }
+        }
+        steps.sort();
+        let excess = steps.len().saturating_sub(keep);
+        for (_, p) in steps.into_iter().take(excess) {
+            fs::remove_dir_all(&p).map_err(io(&p))?;
+        }
+        Ok(())
+    }
+}
+
+/// Appends one JSON object per line to `metrics.jsonl`.
+#[derive(Debug)]
+pub struct MetricsWriter {
+    path: PathBuf,
+    file: fs::File,
+}
+
+impl MetricsWriter {
+    /// Opens (appending: a resumed run continues the same file).
+    pub fn open(path: &Path) -> Result<Self, CheckpointError> {
+        let file = fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(path)
+            .map_err(io(path))?;
+        Ok(MetricsWriter {
+            path: path.to_path_buf(),
+            file,
+        })
+    }
+
+    /// Writes one record and flushes it.
+    pub fn write(&mut self, record: &serde_json::Value) -> Result<(), CheckpointError> {
+        let line = record.to_string();
+        writeln!(self.file, "{line}").map_err(io(&self.path))?;
+        self.file.flush().map_err(io(&self.path))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn atomic_checkpoint_and_truncation_detected() {
+        let root = std::env::temp_dir().join(format!("icrl-ckpt-{}", std::process::id()));
+        let run = RunDir::create(&root, "darkroom", "test", 3).unwrap();
+        let model = serde_json::json!({"d_model": 8});
+        for step in [5, 10, 15] {
+            run.write_checkpoint(step, "test", "darkroom", model.clone(), 2, |dir| {
+                fs::write(dir.join("w.bin"), vec![1u8; 100]).map_err(io(dir))
+            })
+            .unwrap();
+        }
+        let latest = run.latest_checkpoint().unwrap().unwrap();
+        assert!(latest.ends_with("step_15"));
+        assert!(!run.path.join("checkpoints/step_5").exists(), "pruned to 2");
+        let m = read_manifest(&latest).unwrap();
+        m.check_compatible(&latest, "test", "darkroom", &model)
+            .unwrap();
+        let err = m
+            .check_compatible(&latest, "test", "point", &model)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("\"darkroom\"") && err.contains("\"point\""),
+            "{err}"
+        );
+        // Truncate a file: the error names it.
+        fs::write(latest.join("w.bin"), vec![1u8; 10]).unwrap();
+        let err = read_manifest(&latest).unwrap_err().to_string();
+        assert!(err.contains("w.bin") && err.contains("10 bytes"), "{err}");
+        let (_, ckpt) = RunDir::resolve_resume(&run.path).unwrap();
+        assert_eq!(ckpt, latest);
+        assert!(RunDir::resolve_resume(&root).is_err());
+        fs::remove_dir_all(&root).unwrap();
+    }
+}

@@ -1,0 +1,1735 @@
+//! EPPO: safe reinforcement pretraining (the paper's Algorithm 1), read top to
+//! bottom: configuration, networks, collection, the update, `train`, and the
+//! frozen [`EppoAgent`] that evaluation drives.
+//!
+//! Off-policy actor-critic after AMAGO: a time-step MLP encodes each
+//! (s_t, a_{t-1}, r_t, c_t, CTG_t, episode-start) tuple; the shared causal
+//! transformer reads the whole multi-episode trajectory; heads give the actor,
+//! a reward critic Q and a cost critic Qc (one value per action for discrete
+//! actions). Losses per step (SPEC section 3):
+//! - Lv = (Q(h_t, a_t) - [r_{t+1} + gamma Q'(h_{t+1}, a')])^2
+//! - Lc = (Qc(h_t, a_t) - [c_{t+1} + gamma Qc'(h_{t+1}, a')])^2
+//! - Lp = -Q(h_t, a_hat) + lambda v_e Qc(h_t, a_hat), v_e = 1 when episode e's
+//!   cost exceeded the trajectory's budget delta.
+//!
+//! The multiplier follows Eq. (7): lambda <- clip(lambda + eta * mean over the
+//! sampled trajectories of max_k (C_k - delta), 0, lambda_max).
+//!
+//! Metrics (`metrics.jsonl`, one record per collection round, against
+//! `env_steps`): `episodic_return`, `episodic_cost` (means over the episodes
+//! collected in the round), `first_episode_return`, `last_episode_return`,
+//! `first_episode_cost`, `last_episode_cost` (per trajectory, averaged: the
+//! in-context signal), `lambda`, `losses/value_loss`, `losses/cost_value_loss`,
+//! `losses/policy_loss`, `losses/entropy`, `losses/grad_norm`, `charts/epsilon`,
+//! `charts/updates_per_s`, `charts/env_steps_per_s`.
+
+use std::collections::VecDeque;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+use tch::{Device, Kind, Tensor, nn, nn::Module};
+use thiserror::Error;
+
+use safety_envs::{
+    EnvError, EnvName, EnvOptions, Orientation, Space, VecAction, VecEnv, make_env, sample_task,
+    spawn_config,
+};
+
+use crate::agent::{Actions, AgentError, Conditioning, InContextAgent, StepInput};
+use crate::checkpoint::{CheckpointError, MetricsWriter, RunDir, read_manifest};
+use crate::model::{self, KvCache, ModelError, Transformer};
+use crate::optim::{Adam, AdamConfig};
+
+// ---------------------------------------------------------------------------
+// Configuration
+// ---------------------------------------------------------------------------
+
+/// Every EPPO hyperparameter (presets in `icrl/presets/eppo-*.toml`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EppoConfig {
+    /// Seed of every random choice (tasks, budgets, actions, libtorch).
+    pub seed: u64,
+    /// `cpu` or `cuda` (CUDA device 0).
+    pub device: String,
+    /// Environment time limit t_max in agent steps.
+    pub max_episode_steps: usize,
+    /// Fewest episodes per trajectory (K_min).
+    pub k_min: usize,
+    /// Most episodes per trajectory (K_max).
+    pub k_max: usize,
+    /// Smallest sampled per-episode cost budget (CTG_min).
+    pub ctg_min: f32,
+    /// Largest sampled per-episode cost budget (CTG_max); also scales CTG in the tokens.
+    pub ctg_max: f32,
+    /// Trajectories collected at once (one environment each, acted in one batch).
+    pub n_envs: usize,
+    /// Threads stepping the environments.
+    pub env_threads: usize,
+    /// Replay capacity in environment steps (whole trajectories are evicted, oldest first).
+    pub replay_capacity: usize,
+    /// The shared transformer; `max_len` is the sequence length.
+    pub model: model::Config,
+    /// Hidden width of the time-step encoder MLP.
+    pub encoder_hidden: i64,
+    /// Hidden width of the actor and critic heads.
+    pub head_hidden: i64,
+    /// Critics per ensemble (reward target: minimum over them; cost target: mean).
+    pub n_critics: i64,
+    /// Discount factor gamma.
+    pub gamma: f64,
+    /// Value targets bootstrap across episode boundaries inside a trajectory
+    /// (AMAGO's meta-RL view: the objective is the sum of all K returns).
+    pub bootstrap_across_episodes: bool,
+    /// Polyak factor of the target networks (target <- (1 - tau) target + tau online).
+    pub tau: f64,
+    /// Adam learning rate.
+    pub lr: f64,
+    /// Adam beta1.
+    pub beta1: f64,
+    /// Adam beta2.
+    pub beta2: f64,
+    /// Adam epsilon.
+    pub adam_eps: f64,
+    /// Global gradient-norm clip.
+    pub grad_clip: f64,
+    /// Trajectories per update batch (N).
+    pub batch_size: usize,
+    /// Updates to run in total.
+    pub total_updates: u64,
+    /// Updates after each collection round.
+    pub updates_per_round: u64,
+    /// Environment steps collected before the first update.
+    pub learning_starts: u64,
+    /// Multiplier step size eta of Eq. (7).
+    pub lambda_lr: f64,
+    /// Cap lambda_max of the multiplier (Appendix C).
+    pub lambda_max: f64,
+    /// Initial multiplier.
+    pub lambda_init: f64,
+    /// Weight of the critic losses against the actor loss.
+    pub critic_weight: f64,
+    /// Entropy bonus weight in the actor loss.
+    pub entropy_coef: f64,
+    /// Rewards are multiplied by this in the TD targets and the tokens.
+    pub reward_scale: f64,
+    /// Epsilon-greedy exploration at the start (discrete actions; AMAGO lever).
+    pub eps_start: f64,
+    /// Epsilon-greedy exploration after the decay.
+    pub eps_end: f64,
+    /// Environment steps over which epsilon decays linearly.
+    pub eps_decay_steps: u64,
+    /// Updates between checkpoints (one is always written at the end).
+    pub checkpoint_every: u64,
+    /// Checkpoints kept (0 keeps all).
+    pub keep_checkpoints: usize,
+}
+
+/// A configuration that cannot run, a failing environment, model or checkpoint.
+#[derive(Debug, Error)]
+pub enum EppoError {
+    #[error("eppo config: {0}")]
+    Config(String),
+    #[error(transparent)]
+    Env(#[from] EnvError),
+    #[error(transparent)]
+    Model(#[from] ModelError),
+    #[error(transparent)]
+    Torch(#[from] tch::TchError),
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+}
+
+impl EppoConfig {
+    /// Checks the values that would otherwise fail deep inside training.
+    pub fn validate(&self) -> Result<(), EppoError> {
+        let bad = |m: String| Err(EppoError::Config(m));
+        self.model.validate()?;
+        if self.k_min == 0 || self.k_min > self.k_max {
+            return bad(format!(
+                "need 1 <= k_min <= k_max, got k_min = {}, k_max = {}",
+                self.k_min, self.k_max
+            ));
+        }
+        if self.max_episode_steps == 0 {
+            return bad("max_episode_steps must be positive".into());
+        }
+        let longest = self.k_max * self.max_episode_steps;
+        if longest as i64 > self.model.max_len {
+            return bad(format!(
+                "a trajectory of k_max * max_episode_steps = {} * {} = {longest} steps exceeds model.max_len = {}",
+                self.k_max, self.max_episode_steps, self.model.max_len
+            ));
+        }
+        if !(self.ctg_min >= 0.0 && self.ctg_min <= self.ctg_max && self.ctg_max > 0.0) {
+            return bad(format!(
+                "need 0 <= ctg_min <= ctg_max, ctg_max > 0; got {} and {}",
+                self.ctg_min, self.ctg_max
+            ));
+        }
+        for (name, v) in [
+            ("n_envs", self.n_envs),
+            ("env_threads", self.env_threads),
+            ("batch_size", self.batch_size),
+        ] {
+            if v == 0 {
+                return bad(format!("{name} must be positive"));
+            }
+        }
+        if self.n_critics < 1 {
+            return bad(format!("n_critics = {} must be at least 1", self.n_critics));
+        }
+        if !(0.0..1.0).contains(&self.gamma) || !(0.0..=1.0).contains(&self.tau) {
+            return bad(format!(
+                "need gamma in [0, 1) and tau in [0, 1]; got {} and {}",
+                self.gamma, self.tau
+            ));
+        }
+        if self.lambda_max < 0.0 || self.lambda_init < 0.0 || self.lambda_init > self.lambda_max {
+            return bad(format!(
+                "need 0 <= lambda_init <= lambda_max; got {} and {}",
+                self.lambda_init, self.lambda_max
+            ));
+        }
+        if self.replay_capacity < longest {
+            return bad(format!(
+                "replay_capacity = {} cannot hold one trajectory of {longest} steps",
+                self.replay_capacity
+            ));
+        }
+        parse_device(&self.device)?;
+        Ok(())
+    }
+}
+
+/// `cpu` or `cuda` -> a libtorch device; `cuda` fails clearly without a GPU.
+pub fn parse_device(name: &str) -> Result<Device, EppoError> {
+    match name {
+        "cpu" => Ok(Device::Cpu),
+        "cuda" => {
+            if tch::Cuda::is_available() {
+                Ok(Device::Cuda(0))
+            } else {
+                Err(EppoError::Config(
+                    "device = cuda but libtorch sees no CUDA device (this libtorch is CPU-only or no GPU is present); use --device cpu or link a CUDA libtorch (SPEC section 7)".into(),
+                ))
+            }
+        }
+        other => Err(EppoError::Config(format!(
+            "device = {other:?}: expected cpu or cuda"
+        ))),
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Networks
+// ---------------------------------------------------------------------------
+
+/// What the networks read and emit, taken from the environment's spaces.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct NetSpec {
+    /// Observation length.
+    pub obs_dim: usize,
+    /// Per-entry observation bounds used to map observations to [-1, 1]
+    /// (entries with infinite bounds pass through unchanged).
+    pub obs_low: Vec<f32>,
+    pub obs_high: Vec<f32>,
+    /// `Some(n)` for n discrete actions, `None` for a box.
+    pub n_actions: Option<usize>,
+    /// Continuous action bounds (empty for discrete).
+    pub act_low: Vec<f32>,
+    pub act_high: Vec<f32>,
+}
+
+impl NetSpec {
+    /// From the environment's spaces.
+    pub fn from_spaces(obs: &Space, act: &Space) -> Result<Self, EppoError> {
+        let (obs_low, obs_high) = match obs {
+            Space::Box { low, high } => (low.clone(), high.clone()),
+            Space::Discrete { .. } => {
+                return Err(EppoError::Config(
+                    "discrete observation spaces are not supported".into(),
+                ));
+            }
+        };
+        let (n_actions, act_low, act_high) = match act {
+            Space::Discrete { n } => (Some(*n), vec![], vec![]),
+            Space::Box { low, high } => (None, low.clone(), high.clone()),
+        };
+        Ok(NetSpec {
+            obs_dim: obs_low.len(),
+            obs_low,
+            obs_high,
+            n_actions,
+            act_low,
+            act_high,
+        })
+    }
+
+    /// Width of an action as the network sees it (one-hot for discrete).
+    pub fn act_flat(&self) -> usize {
+        self.n_actions.unwrap_or(self.act_low.len())
+    }
+
+    /// Width of one time-step token: obs, previous action, reward, cost, CTG, start flag.
+    pub fn token_dim(&self) -> usize {
+        self.obs_dim + self.act_flat() + 4
+    }
+
+    /// Observation mapped to [-1, 1] where the bounds are finite.
+    fn normalise_obs(&self, obs: &[f32], out: &mut Vec<f32>) {
+        for (i, &x) in obs.iter().enumerate() {
+            let (lo, hi) = (self.obs_low[i], self.obs_high[i]);
+            if lo.is_finite() && hi.is_finite() && hi > lo {
+                out.push(2.0 * (x - lo) / (hi - lo) - 1.0);
+            } else {
+                out.push(x);
+            }
+        }
+    }
+}
+
+/// An MLP head whose forward can use detached weights, so the actor's loss
+/// moves neither critic's parameters (the critic sees gradients only from Lv, Lc).
+#[derive(Debug)]
+struct Head {
+    l1: nn::Linear,
+    l2: nn::Linear,
+    l3: nn::Linear,
+}
+
+impl Head {
+    fn new(p: nn::Path, input: i64, hidden: i64, output: i64) -> Self {
+        Head {
+            l1: nn::linear(&p / "l1", input, hidden, Default::default()),
+            l2: nn::linear(&p / "l2", hidden, hidden, Default::default()),
+            l3: nn::linear(&p / "l3", hidden, output, Default::default()),
+        }
+    }
+
+    fn forward(&self, x: &Tensor) -> Tensor {
+        self.l3
+            .forward(&self.l2.forward(&self.l1.forward(x).relu()).relu())
+    }
+
+    /// The same function with the parameters cut from the graph.
+    fn forward_detached(&self, x: &Tensor) -> Tensor {
+        let lin = |l: &nn::Linear, x: &Tensor| {
+            x.linear(&l.ws.detach(), l.bs.as_ref().map(Tensor::detach))
+        };
+        lin(&self.l3, &lin(&self.l2, &lin(&self.l1, x).relu()).relu())
+    }
+}
+
+/// Time-step encoder, shared transformer, actor and critic heads.
+#[derive(Debug)]
+pub struct EppoNet {
+    spec: NetSpec,
+    /// Time-step encoder: token -> encoder_hidden -> d_model.
+    enc_1: nn::Linear,
+    enc_2: nn::Linear,
+    transformer: Transformer,
+    /// Discrete: logits (A). Continuous: mean and log-std (2 * A).
+    actor: Head,
+    /// Discrete: (C * A) values from h. Continuous: C values from (h, a).
+    critic: Head,
+    cost_critic: Head,
+    n_critics: i64,
+}
+
+const LOG_STD_MIN: f64 = -5.0;
+const LOG_STD_MAX: f64 = 2.0;
+
+impl EppoNet {
+    /// Builds every part under `p` (names are the checkpoint format).
+    pub fn new(p: nn::Path, cfg: &EppoConfig, spec: &NetSpec) -> Result<Self, EppoError> {
+        let d = cfg.model.d_model;
+        let a = spec.act_flat() as i64;
+        let (actor_out, critic_in, critic_out) = match spec.n_actions {
+            Some(_) => (a, d, cfg.n_critics * a),
+            None => (2 * a, d + a, cfg.n_critics),
+        };
+        Ok(EppoNet {
+            spec: spec.clone(),
+            enc_1: nn::linear(
+                &p / "enc_1",
+                spec.token_dim() as i64,
+                cfg.encoder_hidden,
+                Default::default(),
+            ),
+            enc_2: nn::linear(&p / "enc_2", cfg.encoder_hidden, d, Default::default()),
+            transformer: Transformer::new(&p / "transformer", &cfg.model)?,
+            actor: Head::new(&p / "actor", d, cfg.head_hidden, actor_out),
+            critic: Head::new(&p / "critic", critic_in, cfg.head_hidden, critic_out),
+            cost_critic: Head::new(&p / "cost_critic", critic_in, cfg.head_hidden, critic_out),
+            n_critics: cfg.n_critics,
+        })
+    }
+
+    fn embed(&self, tokens: &Tensor) -> Tensor {
+        self.enc_2.forward(&self.enc_1.forward(tokens).gelu("none"))
+    }
+
+    /// Whole sequences: tokens (B, T, token_dim) -> h (B, T, D).
+    pub fn encode(&self, tokens: &Tensor, train: bool) -> Result<Tensor, EppoError> {
+        Ok(self.transformer.forward_t(&self.embed(tokens), train)?)
+    }
+
+    /// Next steps after the cached ones: tokens (B, 1, token_dim) -> h (B, 1, D).
+    pub fn encode_step(&self, tokens: &Tensor, cache: &mut KvCache) -> Result<Tensor, EppoError> {
+        Ok(self.transformer.forward_step(&self.embed(tokens), cache)?)
+    }
+
+    /// A fresh KV cache.
+    pub fn new_cache(&self) -> KvCache {
+        self.transformer.new_cache()
+    }
+
+    /// Discrete critics: h (.., D) -> (.., C, A).
+    fn critic_values(&self, head: &Head, h: &Tensor, detached: bool) -> Tensor {
+        let out = if detached {
+            head.forward_detached(h)
+        } else {
+            head.forward(h)
+        };
+        let mut shape = h.size();
+        shape.pop();
+        shape.extend([self.n_critics, self.spec.act_flat() as i64]);
+        out.view(shape.as_slice()) // (.., C * A) -> (.., C, A)
+    }
+
+    /// Continuous critics: (h (.., D), a (.., A)) -> (.., C).
+    fn critic_sa(&self, head: &Head, h: &Tensor, a: &Tensor, detached: bool) -> Tensor {
+        let x = Tensor::cat(&[h, a], -1); // (.., D + A)
+        if detached {
+            head.forward_detached(&x)
+        } else {
+            head.forward(&x)
+        }
+    }
+
+    /// Continuous actor: h -> (mean, log_std), each (.., A).
+    fn gaussian(&self, h: &Tensor) -> (Tensor, Tensor) {
+        let out = self.actor.forward(h);
+        let parts = out.chunk(2, -1);
+        (
+            parts[0].shallow_clone(),
+            parts[1].clamp(LOG_STD_MIN, LOG_STD_MAX),
+        )
+    }
+}
+
+/// A tanh-squashed Gaussian sample and its log-probability: (a, log_prob) with
+/// a in (-1, 1)^A, (.., A) and (..).
+fn tanh_gaussian_sample(mean: &Tensor, log_std: &Tensor, noise: &Tensor) -> (Tensor, Tensor) {
+    let std = log_std.exp();
+    let u = mean + &std * noise;
+    let a = u.tanh();
+    let log_normal = (noise.square() * -0.5) - log_std - 0.5 * (2.0 * std::f64::consts::PI).ln();
+    // Change of variables through tanh: log(1 - tanh(u)^2) = 2 (ln 2 - u - softplus(-2u)).
+    let log_det = ((u.neg() * 2.0).softplus() + &u).neg() * 2.0 + 2.0 * 2f64.ln();
+    let log_prob = (log_normal - log_det).sum_dim_intlist(-1, false, Kind::Float);
+    (a, log_prob)
+}
+
+// ---------------------------------------------------------------------------
+// Trajectories and the replay buffer
+// ---------------------------------------------------------------------------
+
+/// K episodes in one task with one budget, as collected.
+#[derive(Clone, Debug, Default)]
+pub struct Trajectory {
+    /// The per-episode cost budget delta.
+    pub budget: f32,
+    /// (T, obs_dim) observations s_t.
+    pub obs: Vec<f32>,
+    /// (T, act_flat) actions a_t as the network sees them (one-hot, or in [-1, 1]).
+    pub actions: Vec<f32>,
+    /// Discrete action indices (empty for continuous).
+    pub action_idx: Vec<i64>,
+    /// (T,) reward r_{t+1} and cost c_{t+1} received for a_t.
+    pub rewards: Vec<f32>,
+    pub costs: Vec<f32>,
+    /// (T,) CTG_t before acting at t.
+    pub ctg: Vec<f32>,
+    /// (T,) s_t is an episode's first state.
+    pub start: Vec<bool>,
+    /// (T,) the step ended its episode at the goal (terminal: nothing to bootstrap past it).
+    pub terminated: Vec<bool>,
+    /// (T,) the step ended its episode at the time limit (not terminal).
+    pub truncated: Vec<bool>,
+    /// (T,) index of the episode the step belongs to.
+    pub episode: Vec<u32>,
+    /// Per episode: return and cost.
+    pub episode_returns: Vec<f32>,
+    pub episode_costs: Vec<f32>,
+}
+
+impl Trajectory {
+    /// Steps in the trajectory.
+    pub fn len(&self) -> usize {
+        self.rewards.len()
+    }
+
+    /// True when empty.
+    pub fn is_empty(&self) -> bool {
+        self.rewards.is_empty()
+    }
+
+    /// max_k (C_k - delta): the trajectory's term in Eq. (7).
+    pub fn max_violation(&self) -> f32 {
+        self.episode_costs
+            .iter()
+            .map(|c| c - self.budget)
+            .fold(f32::NEG_INFINITY, f32::max)
+    }
+}
+
+/// Whole trajectories, oldest evicted first once `capacity` steps are exceeded.
+#[derive(Debug, Default)]
+pub struct Replay {
+    trajectories: VecDeque<Trajectory>,
+    steps: usize,
+    capacity: usize,
+}
+
+impl Replay {
+    pub fn new(capacity: usize) -> Self {
+        Replay {
+            trajectories: VecDeque::new(),
+            steps: 0,
+            capacity,
+        }
+    }
+
+    pub fn push(&mut self, t: Trajectory) {
+        self.steps += t.len();
+        self.trajectories.push_back(t);
+        while self.steps > self.capacity {
+            match self.trajectories.pop_front() {
+                Some(old) => self.steps -= old.len(),
+                None => break,
+            }
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.trajectories.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.trajectories.is_empty()
+    }
+
+    /// Steps held.
+    pub fn steps(&self) -> usize {
+        self.steps
+    }
+
+    fn sample<'a>(&'a self, n: usize, rng: &mut ChaCha8Rng) -> Vec<&'a Trajectory> {
+        (0..n)
+            .map(|_| &self.trajectories[rng.gen_range(0..self.trajectories.len())])
+            .collect()
+    }
+}
+
+// ---------------------------------------------------------------------------
+// Tokens: the same construction for collection, training and evaluation
+// ---------------------------------------------------------------------------
+
+/// Writes one token: obs (normalised), a_{t-1}, r_t (scaled), c_t, CTG_t / ctg_max, start flag.
+#[allow(clippy::too_many_arguments)]
+fn push_token(
+    spec: &NetSpec,
+    cfg: &EppoConfig,
+    out: &mut Vec<f32>,
+    obs: &[f32],
+    prev_action: &[f32],
+    reward: f32,
+    cost: f32,
+    ctg: f32,
+    start: bool,
+) {
+    spec.normalise_obs(obs, out);
+    out.extend_from_slice(prev_action);
+    out.push(reward * cfg.reward_scale as f32);
+    out.push(cost);
+    out.push(ctg / cfg.ctg_max);
+    out.push(if start { 1.0 } else { 0.0 });
+}
+
+/// A training batch of B windows of length L (right-padded).
+struct Batch {
+    /// (B, L, token_dim)
+    tokens: Tensor,
+    /// (B, L) discrete action indices, or (B, L, A) continuous actions.
+    actions: Tensor,
+    /// (B, L) reward r_{t+1} (scaled) and cost c_{t+1}.
+    rewards: Tensor,
+    costs: Tensor,
+    /// (B, L) 1 where the step's episode exceeded the budget (v_e).
+    violated: Tensor,
+    /// (B, L) 1 on real (not padded) steps: the actor loss.
+    valid: Tensor,
+    /// (B, L) 1 where a TD target exists for the step: the critic losses.
+    td_valid: Tensor,
+    /// (B, L) 1 where the TD target bootstraps from position t + 1.
+    bootstrap: Tensor,
+    /// (B,) max_k (C_k - delta) of each sampled trajectory (Eq. 7).
+    max_violation: Vec<f32>,
+}
+
+fn make_batch(
+    trajs: &[&Trajectory],
+    cfg: &EppoConfig,
+    spec: &NetSpec,
+    rng: &mut ChaCha8Rng,
+    device: Device,
+) -> Batch {
+    let seq = cfg.model.max_len as usize;
+    // Each trajectory contributes a window of at most `seq` steps.
+    let windows: Vec<(usize, usize)> = trajs
+        .iter()
+        .map(|t| {
+            let len = t.len().min(seq);
+            let start = if t.len() > seq {
+                rng.gen_range(0..=t.len() - seq)
+            } else {
+                0
+            };
+            (start, len)
+        })
+        .collect();
+    let b = trajs.len();
+    let l = windows.iter().map(|w| w.1).max().unwrap_or(1);
+    let (dtok, a) = (spec.token_dim(), spec.act_flat());
+    let mut tokens = Vec::with_capacity(b * l * dtok);
+    let mut acts_f = Vec::with_capacity(b * l * a);
+    let mut acts_i = Vec::with_capacity(b * l);
+    let mut rew = vec![0f32; b * l];
+    let mut cost = vec![0f32; b * l];
+    let mut viol = vec![0f32; b * l];
+    let mut valid = vec![0f32; b * l];
+    let mut td_valid = vec![0f32; b * l];
+    let mut boot = vec![0f32; b * l];
+    let zeros_a = vec![0f32; a];
+    let zeros_o = vec![0f32; spec.obs_dim];
+    for (j, (t, &(s, len))) in trajs.iter().zip(&windows).enumerate() {
+        let violated: Vec<bool> = t.episode_costs.iter().map(|&c| c > t.budget).collect();
+        for i in 0..l {
+            let k = j * l + i;
+            if i >= len {
+                // Padding: a zero token after the end; masked out everywhere.
+                push_token(
+                    spec,
+                    cfg,
+                    &mut tokens,
+                    &zeros_o,
+                    &zeros_a,
+                    0.0,
+                    0.0,
+                    0.0,
+                    false,
+                );
+                acts_f.extend_from_slice(&zeros_a);
+                acts_i.push(0);
+                continue;
+            }
+            let step = s + i;
+            let obs = &t.obs[step * spec.obs_dim..(step + 1) * spec.obs_dim];
+            let (prev, r, c) = if step == 0 {
+                (&zeros_a[..], 0.0, 0.0)
+            } else {
+                (
+                    &t.actions[(step - 1) * a..step * a],
+                    t.rewards[step - 1],
+                    t.costs[step - 1],
+                )
+            };
+            push_token(
+                spec,
+                cfg,
+                &mut tokens,
+                obs,
+                prev,
+                r,
+                c,
+                t.ctg[step],
+                t.start[step],
+            );
+            acts_f.extend_from_slice(&t.actions[step * a..(step + 1) * a]);
+            acts_i.push(t.action_idx.get(step).copied().unwrap_or(0));
+            rew[k] = t.rewards[step] * cfg.reward_scale as f32;
+            cost[k] = t.costs[step];
+            viol[k] = if violated[t.episode[step] as usize] {
+                1.0
+            } else {
+                0.0
+            };
+            valid[k] = 1.0;
+            let last_of_trajectory = step + 1 == t.len();
+            let next_in_window = i + 1 < len;
+            let (has_target, bootstraps) = if cfg.bootstrap_across_episodes {
+                // Meta-RL view: an episode's end (terminated at the goal or
+                // truncated at the time limit) leads to the next episode's
+                // first state, which is the next token: bootstrap through it.
+                // Only the trajectory's end stops the sum of K returns.
+                if last_of_trajectory {
+                    (true, false)
+                } else {
+                    (next_in_window, next_in_window)
+                }
+            } else if t.terminated[step] {
+                // Terminated (goal): a true terminal state, target = r alone.
+                (true, false)
+            } else if t.truncated[step] {
+                // Truncated (time limit): the value goes on past the final
+                // state, but that state is not a token (the next token starts
+                // another episode), so the step has no target and is skipped.
+                (false, false)
+            } else {
+                (next_in_window, next_in_window)
+            };
+            td_valid[k] = if has_target { 1.0 } else { 0.0 };
+            boot[k] = if bootstraps { 1.0 } else { 0.0 };
+        }
+    }
+    let (bi, li) = (b as i64, l as i64);
+    let f = |v: &[f32]| Tensor::from_slice(v).view([bi, li]).to_device(device); // (B*L,) -> (B, L)
+    let actions = match spec.n_actions {
+        Some(_) => Tensor::from_slice(&acts_i).view([bi, li]).to_device(device), // (B, L)
+        None => Tensor::from_slice(&acts_f)
+            .view([bi, li, a as i64])
+            .to_device(device), // (B, L, A)
+    };
+    Batch {
+        tokens: Tensor::from_slice(&tokens)
+            .view([bi, li, dtok as i64])
+            .to_device(device), // (B, L, token_dim)
+        actions,
+        rewards: f(&rew),
+        costs: f(&cost),
+        violated: f(&viol),
+        valid: f(&valid),
+        td_valid: f(&td_valid),
+        bootstrap: f(&boot),
+        max_violation: trajs.iter().map(|t| t.max_violation()).collect(),
+    }
+}
+
+// ---------------------------------------------------------------------------
+// The update: Lv, Lc, Lp, lambda (Eq. 7), Polyak targets
+// ---------------------------------------------------------------------------
+
+/// Scalars of one update.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct UpdateStats {
+    pub value_loss: f64,
+    pub cost_value_loss: f64,
+    pub policy_loss: f64,
+    pub entropy: f64,
+    pub grad_norm: f64,
+    pub lambda: f64,
+}
+
+/// Shifts (B, L) left by one along time: out[:, t] = x[:, t + 1], 0 at the end.
+fn next_step(x: &Tensor) -> Tensor {
+    let l = x.size()[1];
+    let zero = x.narrow(1, 0, 1).zeros_like(); // (B, 1)
+    Tensor::cat(&[x.narrow(1, 1, l - 1), zero], 1) // (B, L)
+}
+
+fn masked_mean(x: &Tensor, mask: &Tensor) -> Tensor {
+    (x * mask).sum(Kind::Float) / mask.sum(Kind::Float).clamp_min(1.0)
+}
+
+/// The three losses on one batch (before any step), and the policy entropy.
+fn losses(
+    net: &EppoNet,
+    target: &EppoNet,
+    batch: &Batch,
+    lambda: f64,
+    cfg: &EppoConfig,
+) -> Result<(Tensor, Tensor, Tensor, Tensor), EppoError> {
+    let h = net.encode(&batch.tokens, true)?; // (B, L, D)
+    let c = cfg.n_critics;
+    // Targets from the target networks at t + 1, no gradient.
+    let (v_next, vc_next) = tch::no_grad(|| -> Result<(Tensor, Tensor), EppoError> {
+        let ht = target.encode(&batch.tokens, false)?; // (B, L, D)
+        let (v, vc) =
+            match net.spec.n_actions {
+                Some(_) => {
+                    // Expected value under the target actor: sum_a pi'(a) Q'(h, a).
+                    let pi = target
+                        .actor
+                        .forward(&ht)
+                        .softmax(-1, Kind::Float)
+                        .unsqueeze(2); // (B, L, 1, A)
+                    let q = (target.critic_values(&target.critic, &ht, false) * &pi)
+                        .sum_dim_intlist(-1, false, Kind::Float); // (B, L, C)
+                    let qc = (target.critic_values(&target.cost_critic, &ht, false) * &pi)
+                        .sum_dim_intlist(-1, false, Kind::Float); // (B, L, C)
+                    (q.amin(-1, false), qc.mean_dim(-1, false, Kind::Float))
+                }
+                None => {
+                    let (mean, log_std) = target.gaussian(&ht);
+                    let (a, _) = tanh_gaussian_sample(&mean, &log_std, &mean.randn_like());
+                    let q = target.critic_sa(&target.critic, &ht, &a, false); // (B, L, C)
+                    let qc = target.critic_sa(&target.cost_critic, &ht, &a, false); // (B, L, C)
+                    (q.amin(-1, false), qc.mean_dim(-1, false, Kind::Float))
+                }
+            }; // (B, L) each
+        Ok((next_step(&v), next_step(&vc)))
+    })?;
+    // y = r + gamma * [bootstraps] * V'(t + 1); the bootstrap mask carries the
+    // terminated / truncated / trajectory-end decision made in `make_batch`.
+    let y = &batch.rewards + &batch.bootstrap * &v_next * cfg.gamma; // (B, L)
+    let yc = &batch.costs + &batch.bootstrap * &vc_next * cfg.gamma; // (B, L)
+    let td_mask = batch.td_valid.unsqueeze(-1); // (B, L, 1)
+    let (q_taken, qc_taken, policy_loss, entropy) = match net.spec.n_actions {
+        Some(_) => {
+            let q_all = net.critic_values(&net.critic, &h, false); // (B, L, C, A)
+            let qc_all = net.critic_values(&net.cost_critic, &h, false); // (B, L, C, A)
+            let idx = batch
+                .actions
+                .view([batch.actions.size()[0], -1, 1, 1])
+                .expand([-1, -1, c, 1], false); // (B, L) -> (B, L, C, 1)
+            let q_taken = q_all.gather(3, &idx, false).squeeze_dim(3); // (B, L, C)
+            let qc_taken = qc_all.gather(3, &idx, false).squeeze_dim(3); // (B, L, C)
+            // Actor: expectation of -Q + lambda v_e Qc under its own distribution;
+            // critic values are constants here (detached).
+            let logits = net.actor.forward(&h); // (B, L, A)
+            let logp = logits.log_softmax(-1, Kind::Float);
+            let pi = logp.exp();
+            let q = q_all.detach().amin(2, false); // (B, L, A)
+            let qc = qc_all.detach().mean_dim(2, false, Kind::Float); // (B, L, A)
+            let per_action = q.neg() + qc * batch.violated.unsqueeze(-1) * lambda; // (B, L, A)
+            let entropy = (&pi * &logp).sum_dim_intlist(-1, false, Kind::Float).neg(); // (B, L)
+            let objective = (&pi * per_action).sum_dim_intlist(-1, false, Kind::Float)
+                - &entropy * cfg.entropy_coef;
+            (
+                q_taken,
+                qc_taken,
+                masked_mean(&objective, &batch.valid),
+                masked_mean(&entropy, &batch.valid),
+            )
+        }
+        None => {
+            let q_taken = net.critic_sa(&net.critic, &h, &batch.actions, false); // (B, L, C)
+            let qc_taken = net.critic_sa(&net.cost_critic, &h, &batch.actions, false); // (B, L, C)
+            let (mean, log_std) = net.gaussian(&h);
+            let (a_hat, log_prob) = tanh_gaussian_sample(&mean, &log_std, &mean.randn_like());
+            // The critics judge a_hat with frozen parameters and a detached
+            // trajectory encoding: the actor loss moves only the actor (and the
+            // encoder through the actor's input).
+            let hd = h.detach();
+            let q = net
+                .critic_sa(&net.critic, &hd, &a_hat, true)
+                .amin(-1, false); // (B, L)
+            let qc =
+                net.critic_sa(&net.cost_critic, &hd, &a_hat, true)
+                    .mean_dim(-1, false, Kind::Float); // (B, L)
+            let objective = q.neg() + qc * &batch.violated * lambda + &log_prob * cfg.entropy_coef;
+            (
+                q_taken,
+                qc_taken,
+                masked_mean(&objective, &batch.valid),
+                masked_mean(&log_prob.neg(), &batch.valid),
+            )
+        }
+    };
+    let value_loss = masked_mean(
+        &(q_taken - y.unsqueeze(-1)).square(),
+        &td_mask.expand([-1, -1, c], false),
+    );
+    let cost_value_loss = masked_mean(
+        &(qc_taken - yc.unsqueeze(-1)).square(),
+        &td_mask.expand([-1, -1, c], false),
+    );
+    Ok((value_loss, cost_value_loss, policy_loss, entropy))
+}
+
+/// Eq. (7): lambda <- clip(lambda + eta * mean_j max_k (C_jk - delta_j), 0, lambda_max).
+pub fn lambda_update(lambda: f64, max_violations: &[f32], eta: f64, lambda_max: f64) -> f64 {
+    if max_violations.is_empty() {
+        return lambda;
+    }
+    let g = max_violations.iter().map(|&x| f64::from(x)).sum::<f64>() / max_violations.len() as f64;
+    (lambda + eta * g).clamp(0.0, lambda_max)
+}
+
+/// target <- (1 - tau) target + tau online, for every variable by name.
+fn polyak(target: &nn::VarStore, online: &nn::VarStore, tau: f64) {
+    let src = online.variables();
+    tch::no_grad(|| {
+        for (name, mut t) in target.variables() {
+            if let Some(o) = src.get(&name) {
+                let _ = t.g_mul_scalar_(1.0 - tau).g_add_(&(o * tau));
+            }
+        }
+    });
+}
+
+// ---------------------------------------------------------------------------
+// The learner's state, collection, and `train`
+// ---------------------------------------------------------------------------
+
+/// Everything a run carries between updates (and into checkpoints).
+pub struct Learner {
+    pub cfg: EppoConfig,
+    pub env: EnvName,
+    pub spec: NetSpec,
+    pub device: Device,
+    pub vs: nn::VarStore,
+    pub net: EppoNet,
+    pub target_vs: nn::VarStore,
+    pub target: EppoNet,
+    pub opt: Adam,
+    pub lambda: f64,
+    pub updates: u64,
+    pub env_steps: u64,
+    pub rng: ChaCha8Rng,
+    pub replay: Replay,
+}
+
+/// What one collection round gathered.
+#[derive(Clone, Debug, Default)]
+pub struct RoundStats {
+    pub trajectories: usize,
+    pub steps: u64,
+    pub mean_return: f64,
+    pub mean_cost: f64,
+    pub first_return: f64,
+    pub last_return: f64,
+    pub first_cost: f64,
+    pub last_cost: f64,
+}
+
+fn mean(xs: impl Iterator<Item = f64>) -> f64 {
+    let (s, n) = xs.fold((0.0, 0usize), |(s, n), x| (s + x, n + 1));
+    if n == 0 { 0.0 } else { s / n as f64 }
+}
+
+impl Learner {
+    /// A fresh learner for `env` (networks initialised from `cfg.seed`).
+    pub fn new(cfg: EppoConfig, env: EnvName) -> Result<Self, EppoError> {
+        cfg.validate()?;
+        let device = parse_device(&cfg.device)?;
+        let probe = make_env(
+            env,
+            &EnvOptions {
+                max_episode_steps: Some(cfg.max_episode_steps),
+            },
+        )?;
+        let spec = NetSpec::from_spaces(&probe.observation_space(), &probe.action_space())?;
+        tch::manual_seed(cfg.seed as i64);
+        let vs = nn::VarStore::new(device);
+        let net = EppoNet::new(vs.root(), &cfg, &spec)?;
+        let mut target_vs = nn::VarStore::new(device);
+        let target = EppoNet::new(target_vs.root(), &cfg, &spec)?;
+        target_vs.copy(&vs)?;
+        target_vs.freeze();
+        let opt = Adam::new(
+            &vs,
+            AdamConfig {
+                lr: cfg.lr,
+                beta1: cfg.beta1,
+                beta2: cfg.beta2,
+                eps: cfg.adam_eps,
+                grad_clip: Some(cfg.grad_clip),
+            },
+        );
+        Ok(Learner {
+            rng: ChaCha8Rng::seed_from_u64(cfg.seed),
+            replay: Replay::new(cfg.replay_capacity),
+            lambda: cfg.lambda_init,
+            updates: 0,
+            env_steps: 0,
+            env,
+            spec,
+            device,
+            vs,
+            net,
+            target_vs,
+            target,
+            opt,
+            cfg,
+        })
+    }
+
+    /// Current epsilon of epsilon-greedy exploration (discrete actions).
+    pub fn epsilon(&self) -> f64 {
+        let frac = (self.env_steps as f64 / self.cfg.eps_decay_steps.max(1) as f64).min(1.0);
+        self.cfg.eps_start + (self.cfg.eps_end - self.cfg.eps_start) * frac
+    }
+
+    /// Collects `cfg.n_envs` trajectories at once: each in a fresh centre-oriented
+    /// task with its own budget and K, acted in one batch through the KV cache.
+    pub fn collect(&mut self, venv: &mut VecEnv) -> Result<RoundStats, EppoError> {
+        let n = venv.len();
+        let spawn = spawn_config(self.env);
+        let (mut budgets, mut ks, mut seeds) = (vec![0f32; n], vec![0usize; n], vec![0u64; n]);
+        for i in 0..n {
+            let task = sample_task(&spawn, Orientation::Centre, self.rng.r#gen())?;
+            venv.set_task(i, &task)?;
+            budgets[i] = self.rng.gen_range(self.cfg.ctg_min..=self.cfg.ctg_max);
+            ks[i] = self.rng.gen_range(self.cfg.k_min..=self.cfg.k_max);
+            seeds[i] = self.rng.r#gen();
+        }
+        venv.reset(&seeds)?;
+        let eps = self.epsilon();
+        let mut acting = Acting::new(&self.net, &self.spec, &self.cfg, &budgets);
+        let mut trajs: Vec<Trajectory> = budgets
+            .iter()
+            .map(|&budget| Trajectory {
+                budget,
+                ..Default::default()
+            })
+            .collect();
+        let mut active = vec![true; n];
+        let (od, a) = (self.spec.obs_dim, self.spec.act_flat());
+        let mut obs = venv.observations().to_vec();
+        let mut prev_action = vec![0f32; n * a];
+        let (mut reward, mut cost, mut start) = (vec![0f32; n], vec![0f32; n], vec![true; n]);
+        let (mut ep_ret, mut ep_cost) = (vec![0f32; n], vec![0f32; n]);
+        let mut steps = 0u64;
+        while active.iter().any(|&x| x) {
+            let input = StepInput {
+                obs: &obs,
+                prev_action: &prev_action,
+                reward: &reward,
+                cost: &cost,
+                episode_start: &start,
+            };
+            let ctg_now = acting.observe(&input);
+            let policy = acting.policy(&self.net, &input)?;
+            let (net_actions, env_actions) =
+                sample_actions(&policy, &self.spec, eps, false, &mut self.rng);
+            for i in (0..n).filter(|&i| active[i]) {
+                let t = &mut trajs[i];
+                t.obs.extend_from_slice(&obs[i * od..(i + 1) * od]);
+                t.actions
+                    .extend_from_slice(&net_actions[i * a..(i + 1) * a]);
+                if let EnvActions::Discrete(idx) = &env_actions {
+                    t.action_idx.push(idx[i] as i64);
+                }
+                t.ctg.push(ctg_now[i]);
+                t.start.push(start[i]);
+                t.episode.push(t.episode_returns.len() as u32);
+            }
+            let outcomes = match &env_actions {
+                EnvActions::Discrete(idx) => venv.step(VecAction::Discrete(idx))?,
+                EnvActions::Continuous(v) => venv.step(VecAction::Continuous(v))?,
+            }
+            .to_vec();
+            obs.copy_from_slice(venv.observations());
+            for i in 0..n {
+                let o = outcomes[i];
+                reward[i] = o.reward;
+                cost[i] = o.cost;
+                start[i] = o.done();
+                prev_action[i * a..(i + 1) * a].copy_from_slice(&net_actions[i * a..(i + 1) * a]);
+                if !active[i] {
+                    continue;
+                }
+                steps += 1;
+                let t = &mut trajs[i];
+                t.rewards.push(o.reward);
+                t.costs.push(o.cost);
+                // Kept apart all the way into the TD targets (see make_batch).
+                t.terminated.push(o.terminated);
+                t.truncated.push(o.truncated);
+                ep_ret[i] += o.reward;
+                ep_cost[i] += o.cost;
+                if o.done() {
+                    t.episode_returns.push(ep_ret[i]);
+                    t.episode_costs.push(ep_cost[i]);
+                    ep_ret[i] = 0.0;
+                    ep_cost[i] = 0.0;
+                    if t.episode_returns.len() == ks[i] {
+                        active[i] = false;
+                    }
+                }
+            }
+        }
+        self.env_steps += steps;
+        let stats = RoundStats {
+            trajectories: n,
+            steps,
+            mean_return: mean(
+                trajs
+                    .iter()
+                    .flat_map(|t| t.episode_returns.iter().map(|&x| f64::from(x))),
+            ),
+            mean_cost: mean(
+                trajs
+                    .iter()
+                    .flat_map(|t| t.episode_costs.iter().map(|&x| f64::from(x))),
+            ),
+            first_return: mean(trajs.iter().map(|t| f64::from(t.episode_returns[0]))),
+            last_return: mean(
+                trajs
+                    .iter()
+                    .map(|t| f64::from(*t.episode_returns.last().unwrap_or(&0.0))),
+            ),
+            first_cost: mean(trajs.iter().map(|t| f64::from(t.episode_costs[0]))),
+            last_cost: mean(
+                trajs
+                    .iter()
+                    .map(|t| f64::from(*t.episode_costs.last().unwrap_or(&0.0))),
+            ),
+        };
+        for t in trajs {
+            self.replay.push(t);
+        }
+        Ok(stats)
+    }
+
+    /// One update on a batch sampled from the replay: Lv, Lc, Lp, then lambda
+    /// (Eq. 7) and the Polyak targets.
+    pub fn update(&mut self) -> Result<UpdateStats, EppoError> {
+        // libtorch's generator (dropout, reparameterisation noise) is reseeded per
+        // update, so a resumed run draws what the uninterrupted one would have.
+        tch::manual_seed((self.cfg.seed ^ 0x5EED_0000).wrapping_add(self.updates) as i64);
+        let trajs = self.replay.sample(self.cfg.batch_size, &mut self.rng);
+        let batch = make_batch(&trajs, &self.cfg, &self.spec, &mut self.rng, self.device);
+        let (lv, lc, lp, entropy) =
+            losses(&self.net, &self.target, &batch, self.lambda, &self.cfg)?;
+        let loss = (&lv + &lc) * self.cfg.critic_weight + &lp;
+        let grad_norm = self.opt.backward_step(&loss);
+        self.lambda = lambda_update(
+            self.lambda,
+            &batch.max_violation,
+            self.cfg.lambda_lr,
+            self.cfg.lambda_max,
+        );
+        polyak(&self.target_vs, &self.vs, self.cfg.tau);
+        self.updates += 1;
+        Ok(UpdateStats {
+            value_loss: lv.double_value(&[]),
+            cost_value_loss: lc.double_value(&[]),
+            policy_loss: lp.double_value(&[]),
+            entropy: entropy.double_value(&[]),
+            grad_norm,
+            lambda: self.lambda,
+        })
+    }
+
+    /// The model shape recorded in checkpoints (resume and loading check it).
+    pub fn model_manifest(&self) -> serde_json::Value {
+        model_manifest(&self.cfg, &self.spec)
+    }
+
+    /// Writes `checkpoints/step_{updates}` (weights, target weights, Adam
+    /// moments, lambda, counters, RNG state, resolved config).
+    pub fn save_checkpoint(&self, run: &RunDir) -> Result<PathBuf, EppoError> {
+        let state = TrainState {
+            lambda: self.lambda,
+            updates: self.updates,
+            env_steps: self.env_steps,
+            rng_seed: self.rng.get_seed(),
+            rng_stream: self.rng.get_stream(),
+            rng_word_pos: self.rng.get_word_pos().to_string(),
+            spec: self.spec.clone(),
+        };
+        let config = toml::to_string(&self.cfg).map_err(|e| EppoError::Config(e.to_string()))?;
+        let dir = run.write_checkpoint(
+            self.updates,
+            "eppo",
+            self.env.as_str(),
+            self.model_manifest(),
+            self.cfg.keep_checkpoints,
+            |dir| {
+                let wrap = |path: PathBuf, e: String| CheckpointError::Invalid {
+                    path,
+                    problem: e,
+                    fix: "check the disk".into(),
+                };
+                let p = dir.join("model.safetensors");
+                self.vs
+                    .save(&p)
+                    .map_err(|e| wrap(p.clone(), e.to_string()))?;
+                let p = dir.join("target.safetensors");
+                self.target_vs
+                    .save(&p)
+                    .map_err(|e| wrap(p.clone(), e.to_string()))?;
+                let p = dir.join("optimizer.safetensors");
+                self.opt
+                    .save(&p)
+                    .map_err(|e| wrap(p.clone(), e.to_string()))?;
+                let p = dir.join("state.json");
+                let text = serde_json::to_string_pretty(&state)
+                    .map_err(|e| wrap(p.clone(), e.to_string()))?;
+                std::fs::write(&p, text).map_err(|e| wrap(p.clone(), e.to_string()))?;
+                let p = dir.join("config.toml");
+                std::fs::write(&p, &config).map_err(|e| wrap(p.clone(), e.to_string()))
+            },
+        )?;
+        Ok(dir)
+    }
+
+    /// Restores a learner from a checkpoint folder written by
+    /// [`Learner::save_checkpoint`], after checking it matches `cfg` and `env`.
+    /// The replay buffer is not checkpointed: it refills from the resumed policy.
+    pub fn resume(cfg: EppoConfig, env: EnvName, dir: &Path) -> Result<Self, EppoError> {
+        let manifest = read_manifest(dir)?;
+        let mut learner = Learner::new(cfg, env)?;
+        manifest.check_compatible(dir, "eppo", env.as_str(), &learner.model_manifest())?;
+        let bad = |file: &str, e: String| {
+            EppoError::Checkpoint(CheckpointError::Invalid {
+                path: dir.join(file),
+                problem: e,
+                fix: "resume from an earlier checkpoints/step_N folder, or start a new run".into(),
+            })
+        };
+        learner
+            .vs
+            .load(dir.join("model.safetensors"))
+            .map_err(|e| bad("model.safetensors", e.to_string()))?;
+        learner
+            .target_vs
+            .load(dir.join("target.safetensors"))
+            .map_err(|e| bad("target.safetensors", e.to_string()))?;
+        learner
+            .opt
+            .load(&dir.join("optimizer.safetensors"))
+            .map_err(|e| bad("optimizer.safetensors", e))?;
+        let text = std::fs::read_to_string(dir.join("state.json"))
+            .map_err(|e| bad("state.json", e.to_string()))?;
+        let state: TrainState =
+            serde_json::from_str(&text).map_err(|e| bad("state.json", e.to_string()))?;
+        if state.spec != learner.spec {
+            return Err(bad(
+                "state.json",
+                "the environment's spaces differ from the checkpoint's".into(),
+            ));
+        }
+        learner.lambda = state.lambda;
+        learner.updates = state.updates;
+        learner.env_steps = state.env_steps;
+        let mut rng = ChaCha8Rng::from_seed(state.rng_seed);
+        rng.set_stream(state.rng_stream);
+        rng.set_word_pos(
+            state
+                .rng_word_pos
+                .parse::<u128>()
+                .map_err(|e| bad("state.json", e.to_string()))?,
+        );
+        learner.rng = rng;
+        Ok(learner)
+    }
+}
+
+/// Counters and RNG state in `state.json`.
+#[derive(Debug, Serialize, Deserialize)]
+struct TrainState {
+    lambda: f64,
+    updates: u64,
+    env_steps: u64,
+    rng_seed: [u8; 32],
+    rng_stream: u64,
+    /// u128 as a decimal string (JSON numbers cannot hold it).
+    rng_word_pos: String,
+    spec: NetSpec,
+}
+
+fn model_manifest(cfg: &EppoConfig, spec: &NetSpec) -> serde_json::Value {
+    serde_json::json!({
+        "transformer": cfg.model,
+        "encoder_hidden": cfg.encoder_hidden,
+        "head_hidden": cfg.head_hidden,
+        "n_critics": cfg.n_critics,
+        "obs_dim": spec.obs_dim,
+        "n_actions": spec.n_actions,
+        "act_dim": spec.act_flat(),
+    })
+}
+
+/// Options of one `icrl pretrain` run (the CLI fills it).
+#[derive(Clone, Debug)]
+pub struct PretrainOptions {
+    pub env: EnvName,
+    pub cfg: EppoConfig,
+    /// Parent folder of run folders (`runs`).
+    pub out: PathBuf,
+    /// A run folder or checkpoint folder to continue from.
+    pub resume: Option<PathBuf>,
+    /// Draw a progress bar (off in tests).
+    pub progress: bool,
+}
+
+/// What a finished run reports.
+#[derive(Clone, Debug)]
+pub struct PretrainReport {
+    pub run_dir: PathBuf,
+    pub last_checkpoint: PathBuf,
+    pub updates: u64,
+    pub env_steps: u64,
+    pub lambda: f64,
+}
+
+/// Algorithm 1: collect rounds of trajectories, update, checkpoint, log.
+pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
+    let (run, mut learner) = match &opts.resume {
+        Some(path) => {
+            let (run, ckpt) = RunDir::resolve_resume(path)?;
+            (run, Learner::resume(opts.cfg.clone(), opts.env, &ckpt)?)
+        }
+        None => {
+            let learner = Learner::new(opts.cfg.clone(), opts.env)?;
+            let run = RunDir::create(&opts.out, opts.env.as_str(), "eppo", opts.cfg.seed)?;
+            (run, learner)
+        }
+    };
+    let cfg = learner.cfg.clone();
+    run.write_config(&toml::to_string(&cfg).map_err(|e| EppoError::Config(e.to_string()))?)?;
+    let mut metrics = MetricsWriter::open(&run.metrics_path())?;
+    let envs = (0..cfg.n_envs)
+        .map(|_| {
+            make_env(
+                opts.env,
+                &EnvOptions {
+                    max_episode_steps: Some(cfg.max_episode_steps),
+                },
+            )
+        })
+        .collect::<Result<Vec<_>, _>>()?;
+    let mut venv = VecEnv::new(envs, cfg.env_threads, true)?;
+    let bar = if opts.progress {
+        let bar = indicatif::ProgressBar::new(cfg.total_updates);
+        bar.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{bar:30} {pos}/{len} updates [{elapsed_precise}<{eta_precise}] {msg}",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        bar.set_position(learner.updates);
+        bar
+    } else {
+        indicatif::ProgressBar::hidden()
+    };
+    let mut last_ckpt = run.latest_checkpoint()?.unwrap_or_default();
+    let started = Instant::now();
+    let (start_updates, start_steps) = (learner.updates, learner.env_steps);
+    while learner.updates < cfg.total_updates {
+        let round = learner.collect(&mut venv)?;
+        let mut stats = Vec::new();
+        if learner.env_steps >= cfg.learning_starts {
+            for _ in 0..cfg.updates_per_round {
+                if learner.updates >= cfg.total_updates {
+                    break;
+                }
+                stats.push(learner.update()?);
+                bar.set_position(learner.updates);
+                if learner.updates % cfg.checkpoint_every.max(1) == 0 {
+                    last_ckpt = learner.save_checkpoint(&run)?;
+                }
+            }
+        }
+        let secs = started.elapsed().as_secs_f64().max(1e-9);
+        let ups = (learner.updates - start_updates) as f64 / secs;
+        let sps = (learner.env_steps - start_steps) as f64 / secs;
+        let avg = |f: fn(&UpdateStats) -> f64| {
+            if stats.is_empty() {
+                f64::NAN
+            } else {
+                mean(stats.iter().map(f))
+            }
+        };
+        let record = serde_json::json!({
+            "env_steps": learner.env_steps,
+            "updates": learner.updates,
+            "episodic_return": round.mean_return,
+            "episodic_cost": round.mean_cost,
+            "first_episode_return": round.first_return,
+            "last_episode_return": round.last_return,
+            "first_episode_cost": round.first_cost,
+            "last_episode_cost": round.last_cost,
+            "lambda": learner.lambda,
+            "losses/value_loss": avg(|s| s.value_loss),
+            "losses/cost_value_loss": avg(|s| s.cost_value_loss),
+            "losses/policy_loss": avg(|s| s.policy_loss),
+            "losses/entropy": avg(|s| s.entropy),
+            "losses/grad_norm": avg(|s| s.grad_norm),
+            "charts/epsilon": learner.epsilon(),
+            "charts/updates_per_s": ups,
+            "charts/env_steps_per_s": sps,
+        });
+        metrics.write(&record)?;
+        bar.set_message(format!(
+            "{ups:.2} upd/s  lambda {:.3}  return {:.2}  cost {:.2}  Lv {:.3} Lc {:.3} Lp {:.3}",
+            learner.lambda,
+            round.mean_return,
+            round.mean_cost,
+            avg(|s| s.value_loss),
+            avg(|s| s.cost_value_loss),
+            avg(|s| s.policy_loss)
+        ));
+    }
+    if !last_ckpt.ends_with(format!("step_{}", learner.updates)) {
+        last_ckpt = learner.save_checkpoint(&run)?;
+    }
+    bar.finish();
+    Ok(PretrainReport {
+        run_dir: run.path.clone(),
+        last_checkpoint: last_ckpt,
+        updates: learner.updates,
+        env_steps: learner.env_steps,
+        lambda: learner.lambda,
+    })
+}
+
+// ---------------------------------------------------------------------------
+// Acting: shared by collection and the frozen agent
+// ---------------------------------------------------------------------------
+
+/// Per-batch acting state: the KV cache and each trajectory's CTG.
+struct Acting {
+    cache: KvCache,
+    budgets: Vec<f32>,
+    ctg: Vec<f32>,
+    tokens: Vec<f32>,
+    spec: NetSpec,
+    cfg: EppoConfig,
+}
+
+/// The policy's output for B trajectories, on the CPU.
+enum Policy {
+    /// (B, A) probabilities.
+    Discrete(Vec<f32>, usize),
+    /// (B, A) means and log-stds.
+    Continuous(Vec<f32>, Vec<f32>, usize),
+}
+
+enum EnvActions {
+    Discrete(Vec<usize>),
+    Continuous(Vec<f32>),
+}
+
+impl Acting {
+    fn new(net: &EppoNet, spec: &NetSpec, cfg: &EppoConfig, budgets: &[f32]) -> Self {
+        Acting {
+            cache: net.new_cache(),
+            budgets: budgets.to_vec(),
+            ctg: budgets.to_vec(),
+            tokens: Vec::new(),
+            spec: spec.clone(),
+            cfg: cfg.clone(),
+        }
+    }
+
+    /// Updates each CTG from the step's input (restart at the budget on an
+    /// episode's first step, else decrease by the cost just received) and
+    /// returns the CTGs the policy sees.
+    fn observe(&mut self, input: &StepInput<'_>) -> Vec<f32> {
+        for i in 0..self.budgets.len() {
+            self.ctg[i] = if input.episode_start[i] {
+                self.budgets[i]
+            } else {
+                self.ctg[i] - input.cost[i]
+            };
+        }
+        self.ctg.clone()
+    }
+
+    /// Encodes one step of B trajectories through the cache; returns the policy.
+    fn policy(&mut self, net: &EppoNet, input: &StepInput<'_>) -> Result<Policy, EppoError> {
+        let b = self.budgets.len();
+        let (od, a) = (self.spec.obs_dim, self.spec.act_flat());
+        self.tokens.clear();
+        for i in 0..b {
+            push_token(
+                &self.spec,
+                &self.cfg,
+                &mut self.tokens,
+                &input.obs[i * od..(i + 1) * od],
+                &input.prev_action[i * a..(i + 1) * a],
+                input.reward[i],
+                input.cost[i],
+                self.ctg[i],
+                input.episode_start[i],
+            );
+        }
+        let device = net.enc_1.ws.device();
+        let x = Tensor::from_slice(&self.tokens)
+            .view([b as i64, 1, self.spec.token_dim() as i64])
+            .to_device(device); // (B, 1, token_dim)
+        tch::no_grad(|| {
+            let h = net.encode_step(&x, &mut self.cache)?.squeeze_dim(1); // (B, 1, D) -> (B, D)
+            Ok(match self.spec.n_actions {
+                Some(n) => {
+                    let p = net
+                        .actor
+                        .forward(&h)
+                        .softmax(-1, Kind::Float)
+                        .to_device(Device::Cpu);
+                    Policy::Discrete(Vec::<f32>::try_from(&p.view([-1]))?, n)
+                }
+                None => {
+                    let (m, s) = net.gaussian(&h);
+                    let m = Vec::<f32>::try_from(&m.to_device(Device::Cpu).view([-1]))?;
+                    let s = Vec::<f32>::try_from(&s.to_device(Device::Cpu).view([-1]))?;
+                    Policy::Continuous(m, s, a)
+                }
+            })
+        })
+    }
+}
+
+/// Picks actions: sampled (epsilon-greedy on top for discrete) or the mode.
+/// Returns the actions as the network sees them and as the environment takes them.
+fn sample_actions(
+    policy: &Policy,
+    spec: &NetSpec,
+    eps: f64,
+    greedy: bool,
+    rng: &mut ChaCha8Rng,
+) -> (Vec<f32>, EnvActions) {
+    match policy {
+        Policy::Discrete(p, n) => {
+            let n = *n;
+            let b = p.len() / n;
+            let mut onehot = vec![0f32; b * n];
+            let idx: Vec<usize> = (0..b)
+                .map(|i| {
+                    let row = &p[i * n..(i + 1) * n];
+                    let k = if greedy {
+                        row.iter()
+                            .enumerate()
+                            .fold(0, |best, (k, &x)| if x > row[best] { k } else { best })
+                    } else if rng.r#gen::<f64>() < eps {
+                        rng.gen_range(0..n)
+                    } else {
+                        let u: f32 = rng.r#gen();
+                        let mut acc = 0.0;
+                        row.iter()
+                            .position(|&x| {
+                                acc += x;
+                                u < acc
+                            })
+                            .unwrap_or(n - 1)
+                    };
+                    onehot[i * n + k] = 1.0;
+                    k
+                })
+                .collect();
+            (onehot, EnvActions::Discrete(idx))
+        }
+        Policy::Continuous(m, s, a) => {
+            let mut net = Vec::with_capacity(m.len());
+            let mut env = Vec::with_capacity(m.len());
+            for (j, (&mu, &log_std)) in m.iter().zip(s).enumerate() {
+                let z = if greedy {
+                    0.0
+                } else {
+                    rng.sample::<f32, _>(rand_distr::StandardNormal)
+                };
+                let x = (mu + log_std.exp() * z).tanh();
+                let k = j % a;
+                let (lo, hi) = (spec.act_low[k], spec.act_high[k]);
+                net.push(x);
+                env.push(lo + (x + 1.0) * 0.5 * (hi - lo));
+            }
+            (net, EnvActions::Continuous(env))
+        }
+    }
+}
+
+// ---------------------------------------------------------------------------
+// The frozen agent for evaluation
+// ---------------------------------------------------------------------------
+
+/// A pretrained EPPO policy, frozen, acting through the KV cache.
+pub struct EppoAgent {
+    _vs: nn::VarStore,
+    net: EppoNet,
+    spec: NetSpec,
+    cfg: EppoConfig,
+    acting: Option<Acting>,
+    rng: ChaCha8Rng,
+}
+
+impl EppoAgent {
+    /// Loads `checkpoints/step_N` (or a run folder: its latest checkpoint) onto `device`.
+    pub fn load(path: &Path, device: Device) -> Result<Self, EppoError> {
+        let dir = if path.join(crate::checkpoint::MANIFEST).is_file() {
+            path.to_path_buf()
+        } else {
+            RunDir::resolve_resume(path)?.1
+        };
+        let manifest = read_manifest(&dir)?;
+        let bad = |file: &str, e: String| {
+            EppoError::Checkpoint(CheckpointError::Invalid {
+                path: dir.join(file),
+                problem: e,
+                fix: "load a checkpoint written by `icrl pretrain` (method eppo)".into(),
+            })
+        };
+        if manifest.method != "eppo" {
+            return Err(bad(
+                crate::checkpoint::MANIFEST,
+                format!("method is {:?}, not eppo", manifest.method),
+            ));
+        }
+        let text = std::fs::read_to_string(dir.join("config.toml"))
+            .map_err(|e| bad("config.toml", e.to_string()))?;
+        let mut cfg: EppoConfig =
+            toml::from_str(&text).map_err(|e| bad("config.toml", e.to_string()))?;
+        cfg.device = if device == Device::Cpu {
+            "cpu".into()
+        } else {
+            "cuda".into()
+        };
+        let text = std::fs::read_to_string(dir.join("state.json"))
+            .map_err(|e| bad("state.json", e.to_string()))?;
+        let state: TrainState =
+            serde_json::from_str(&text).map_err(|e| bad("state.json", e.to_string()))?;
+        let mut vs = nn::VarStore::new(device);
+        let net = EppoNet::new(vs.root(), &cfg, &state.spec)?;
+        vs.load(dir.join("model.safetensors"))
+            .map_err(|e| bad("model.safetensors", e.to_string()))?;
+        vs.freeze();
+        Ok(EppoAgent {
+            _vs: vs,
+            net,
+            spec: state.spec,
+            rng: ChaCha8Rng::seed_from_u64(cfg.seed),
+            cfg,
+            acting: None,
+        })
+    }
+
+    /// The training configuration stored with the checkpoint.
+    pub fn config(&self) -> &EppoConfig {
+        &self.cfg
+    }
+
+    /// Reseeds action sampling.
+    pub fn set_seed(&mut self, seed: u64) {
+        self.rng = ChaCha8Rng::seed_from_u64(seed);
+    }
+}
+
+impl InContextAgent for EppoAgent {
+    fn reset(&mut self, conditioning: &[Conditioning]) -> Result<(), AgentError> {
+        let budgets = conditioning
+            .iter()
+            .map(|c| match c {
+                Conditioning::Budget { ctg } => Ok(*ctg),
+                Conditioning::Targets { .. } => Err(AgentError::Input(
+                    "EPPO is conditioned on a budget, not on RTG/CTG targets".into(),
+                )),
+            })
+            .collect::<Result<Vec<f32>, _>>()?;
+        self.acting = Some(Acting::new(&self.net, &self.spec, &self.cfg, &budgets));
+        Ok(())
+    }
+
+    fn act(&mut self, input: &StepInput<'_>, greedy: bool) -> Result<Actions, AgentError> {
+        let acting = self
+            .acting
+            .as_mut()
+            .ok_or_else(|| AgentError::Input("act before reset".into()))?;
+        let b = acting.budgets.len();
+        let (od, a) = (self.spec.obs_dim, self.spec.act_flat());
+        let sizes = [
+            ("obs", input.obs.len(), b * od),
+            ("prev_action", input.prev_action.len(), b * a),
+            ("reward", input.reward.len(), b),
+            ("cost", input.cost.len(), b),
+            ("episode_start", input.episode_start.len(), b),
+        ];
+        for (name, got, want) in sizes {
+            if got != want {
+                return Err(AgentError::Input(format!(
+                    "{name} has {got} entries, expected {want}"
+                )));
+            }
+        }
+        // Continuous previous actions arrive in the environment's scale; the
+        // network saw them in [-1, 1].
+        let prev: Vec<f32> = match self.spec.n_actions {
+            Some(_) => input.prev_action.to_vec(),
+            None => input
+                .prev_action
+                .iter()
+                .enumerate()
+                .map(|(j, &x)| {
+                    let (lo, hi) = (self.spec.act_low[j % a], self.spec.act_high[j % a]);
+                    if hi > lo {
+                        2.0 * (x - lo) / (hi - lo) - 1.0
+                    } else {
+                        x
+                    }
+                })
+                .collect(),
+        };
+        let input = StepInput {
+            prev_action: &prev,
+            ..*input
+        };
+        acting.observe(&input);
+        let policy = acting.policy(&self.net, &input).map_err(|e| match e {
+            EppoError::Torch(t) => AgentError::Torch(t),
+            other => AgentError::Input(other.to_string()),
+        })?;
+        let (_, env_actions) = sample_actions(&policy, &self.spec, 0.0, greedy, &mut self.rng);
+        Ok(match env_actions {
+            EnvActions::Discrete(v) => Actions::Discrete(v),
+            EnvActions::Continuous(v) => Actions::Continuous(v),
+        })
+    }
+}
+
+// ---------------------------------------------------------------------------
+// The `pretrain` subcommand's body
+// ---------------------------------------------------------------------------
+
+/// Resolves the configuration and runs [`train`]: a new run from the preset
+/// `eppo-{env}-{preset}`, or with `resume` the run's own `config.toml`; the
+/// `sets` overrides (`key=value`) apply on top in both cases.
+pub fn pretrain_command(
+    env: &str,
+    preset: &str,
+    resume: Option<&Path>,
+    sets: &[String],
+    out: &Path,
+) -> Result<PretrainReport, EppoError> {
+    let env_name: EnvName = env.parse().map_err(|e| EppoError::Config(format!("{e}")))?;
+    let cfg_err = |e: crate::presets::PresetError| EppoError::Config(e.to_string());
+    let (name, mut table) = match resume {
+        Some(path) => {
+            let (run, _) = RunDir::resolve_resume(path)?;
+            let p = run.config_path();
+            let text = std::fs::read_to_string(&p).map_err(|e| CheckpointError::Io {
+                path: p.clone(),
+                source: e,
+            })?;
+            let table = text.parse::<toml::Table>().map_err(|e| {
+                EppoError::Checkpoint(CheckpointError::Invalid {
+                    path: p.clone(),
+                    problem: e.to_string(),
+                    fix: "restore the run's config.toml or start a new run".into(),
+                })
+            })?;
+            (p.display().to_string(), table)
+        }
+        None => (
+            format!("eppo-{env}-{preset}"),
+            crate::presets::preset_table("eppo", env, preset).map_err(cfg_err)?,
+        ),
+    };
+    crate::presets::apply_overrides(&mut table, sets).map_err(cfg_err)?;
+    let cfg: EppoConfig = crate::presets::resolve(&name, table).map_err(cfg_err)?;
+    let opts = PretrainOptions {
+        env: env_name,
+        cfg,
+        out: out.to_path_buf(),
+        resume: resume.map(Path::to_path_buf),
+        progress: true,
+    };
+    train(&opts)
+}

@@ -1,0 +1,162 @@
+//! Presets as TOML files (`icrl/presets/{method}-{env}-{preset}.toml`, built
+//! into the binary) and `--set key=value` overrides on any field, dotted for
+//! nested tables (`--set model.n_layers=2`).
+
+use serde::de::DeserializeOwned;
+use thiserror::Error;
+
+/// An unknown preset, an override that does not apply, or a config that does not parse.
+#[derive(Debug, Error)]
+pub enum PresetError {
+    #[error("no preset {name:?}; available: {available}")]
+    Unknown { name: String, available: String },
+    #[error("--set {0:?}: expected key=value")]
+    Malformed(String),
+    #[error("--set {key}: no such field; fields here: {fields}")]
+    NoField { key: String, fields: String },
+    #[error("preset {name}: {source}")]
+    Parse {
+        name: String,
+        #[source]
+        source: toml::de::Error,
+    },
+}
+
+/// Every built-in preset, by name `{method}-{env}-{preset}`.
+const PRESETS: &[(&str, &str)] = &[
+    (
+        "eppo-darkroom-table1",
+        include_str!("../presets/eppo-darkroom-table1.toml"),
+    ),
+    (
+        "eppo-darkroom-quick",
+        include_str!("../presets/eppo-darkroom-quick.toml"),
+    ),
+    (
+        "eppo-point-table1",
+        include_str!("../presets/eppo-point-table1.toml"),
+    ),
+    (
+        "eppo-point-quick",
+        include_str!("../presets/eppo-point-quick.toml"),
+    ),
+    (
+        "eppo-car-table1",
+        include_str!("../presets/eppo-car-table1.toml"),
+    ),
+    (
+        "eppo-car-quick",
+        include_str!("../presets/eppo-car-quick.toml"),
+    ),
+];
+
+/// The preset `{method}-{env}-{preset}` as a TOML table.
+pub fn preset_table(method: &str, env: &str, preset: &str) -> Result<toml::Table, PresetError> {
+    let name = format!("{method}-{env}-{preset}");
+    let text = PRESETS
+        .iter()
+        .find(|(n, _)| *n == name)
+        .map(|(_, t)| *t)
+        .ok_or_else(|| PresetError::Unknown {
+            name: name.clone(),
+            available: PRESETS
+                .iter()
+                .map(|(n, _)| *n)
+                .collect::<Vec<_>>()
+                .join(", "),
+        })?;
+    text.parse::<toml::Table>()
+        .map_err(|source| PresetError::Parse { name, source })
+}
+
+/// Applies `key=value` overrides; the value is read as TOML (`3`, `0.5`,
+/// `true`, `"cuda"`), falling back to a bare string (`device=cuda`). Only
+/// existing fields can be set, so a typo is an error, not a silent no-op.
+pub fn apply_overrides(table: &mut toml::Table, sets: &[String]) -> Result<(), PresetError> {
+    for set in sets {
+        let (key, raw) = set
+            .split_once('=')
+            .ok_or_else(|| PresetError::Malformed(set.clone()))?;
+        let value = format!("v = {raw}")
+            .parse::<toml::Table>()
+            .ok()
+            .and_then(|mut t| t.remove("v"))
+            .unwrap_or_else(|| toml::Value::String(raw.to_string()));
+        let parts: Vec<&str> = key.trim().split('.').collect();
+        let mut node = &mut *table;
+        for (i, part) in parts.iter().enumerate() {
+            let fields = node.keys().cloned().collect::<Vec<_>>().join(", ");
+            let no_field = || PresetError::NoField {
+                key: key.to_string(),
+                fields: fields.clone(),
+            };
+            if i + 1 == parts.len() {
+                let slot = node.get_mut(*part).ok_or_else(no_field)?;
+                // An integer given for a float field stays a float.
+                *slot = match (&*slot, value.clone()) {
+                    (toml::Value::Float(_), toml::Value::Integer(n)) => {
+                        toml::Value::Float(n as f64)
+                    }
+                    (_, v) => v,
+                };
+            } else {
+                node = node
+                    .get_mut(*part)
+                    .and_then(toml::Value::as_table_mut)
+                    .ok_or_else(no_field)?;
+            }
+        }
+    }
+    Ok(())
+}
+
+/// Deserialises a table into a config struct.
+pub fn resolve<T: DeserializeOwned>(name: &str, table: toml::Table) -> Result<T, PresetError> {
+    T::deserialize(toml::Value::Table(table)).map_err(|source| PresetError::Parse {
+        name: name.to_string(),
+        source,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::eppo::EppoConfig;
+
+    #[test]
+    fn every_preset_parses_and_validates() {
+        for (name, _) in PRESETS {
+            let mut parts = name.splitn(3, '-');
+            let (m, e, p) = (
+                parts.next().unwrap(),
+                parts.next().unwrap(),
+                parts.next().unwrap(),
+            );
+            let cfg: EppoConfig = resolve(name, preset_table(m, e, p).unwrap()).unwrap();
+            cfg.validate().unwrap_or_else(|err| panic!("{name}: {err}"));
+        }
+    }
+
+    #[test]
+    fn overrides_apply_and_typos_fail() {
+        let mut t = preset_table("eppo", "darkroom", "quick").unwrap();
+        let sets = ["model.n_layers=1", "lr=1", "device=cuda", "seed=7"].map(String::from);
+        apply_overrides(&mut t, &sets).unwrap();
+        let cfg: EppoConfig = resolve("x", t.clone()).unwrap();
+        assert_eq!(
+            (cfg.model.n_layers, cfg.lr, cfg.device.as_str(), cfg.seed),
+            (1, 1.0, "cuda", 7)
+        );
+        let err = apply_overrides(&mut t, &["modle.n_layers=1".into()])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("modle.n_layers"), "{err}");
+        assert!(apply_overrides(&mut t, &["lr".into()]).is_err());
+        assert!(
+            preset_table("eppo", "darkroom", "huge")
+                .unwrap_err()
+                .to_string()
+                .contains("eppo-darkroom-quick")
+        );
+    }
+}
