@@ -194,10 +194,28 @@ impl Data {
         f: impl FnOnce(*const sys::mjModel, *mut sys::mjData),
     ) -> Result<Warnings, MujocoError> {
         self.check(model)?;
+        // MuJoCo's automatic reset on a bad state (`mj_resetData` inside
+        // `mj_step`) zeroes every counter and then counts only the warning
+        // that caused it, so a before/after difference can miss a repeat.
+        // Instead, start the call from zero, read what it raised, and add the
+        // previous totals back.
         let before = self.warning_counts();
+        self.set_warning_counts(&[0; 8]);
         let (m, d) = (model.as_ptr(), self.ptr.as_ptr());
         match guarded(|| f(m, d)) {
-            Ok(()) => Ok(self.warnings_since(&before)),
+            Ok(()) => {
+                let raised = self.warning_counts();
+                let totals: [i32; 8] =
+                    std::array::from_fn(|i| before[i].saturating_add(raised[i].max(0)));
+                self.set_warning_counts(&totals);
+                let mut set = Warnings::default();
+                for (kind, &n) in Warning::ALL.into_iter().zip(&raised) {
+                    if n > 0 {
+                        set.insert(kind);
+                    }
+                }
+                Ok(set)
+            }
             Err(err) => {
                 // SAFETY: an engine error leaves `d` in an unspecified state;
                 // `mj_resetData` rebuilds it from the (unchanged) model.
@@ -230,21 +248,17 @@ impl Data {
         guarded(|| unsafe { sys::mj_resetData(m, d) })
     }
 
-    /// The per-kind warning counters (`warning[i].number`).
+    /// How often each kind of warning was raised since the last reset, in
+    /// `mjtWarning` order (`warning[i].number`).
     pub fn warning_counts(&self) -> [i32; 8] {
         let w = &self.raw().warning;
         std::array::from_fn(|i| w[i].number)
     }
 
-    fn warnings_since(&self, before: &[i32; 8]) -> Warnings {
-        let after = self.warning_counts();
-        let mut set = Warnings::default();
-        for (i, kind) in Warning::ALL.into_iter().enumerate() {
-            if after[i] > before[i] {
-                set.insert(kind);
-            }
+    fn set_warning_counts(&mut self, counts: &[i32; 8]) {
+        for (stat, &n) in self.raw_mut().warning.iter_mut().zip(counts) {
+            stat.number = n;
         }
-        set
     }
 
     /// The underlying `mjData`.
@@ -440,9 +454,23 @@ mod tests {
         let warnings = data.step(&model).unwrap();
         assert!(warnings.contains(Warning::BadCtrl), "{warnings:?}");
         assert!(warnings.state_was_reset());
-        // Counters only grow: the next clean step reports nothing new.
+        // A clean step reports nothing new; the totals keep counting.
         data.ctrl_mut()[0] = 0.0;
         assert!(data.step(&model).unwrap().is_empty());
+        assert_eq!(data.warning_counts()[Warning::BadCtrl as usize], 1);
+    }
+
+    #[test]
+    fn repeated_nan_state_resets_are_each_reported() {
+        let model = Model::from_xml_str(SLIDER).unwrap();
+        let mut data = Data::new(&model).unwrap();
+        for _ in 0..3 {
+            data.step(&model).unwrap();
+            data.qvel_mut()[0] = f64::NAN;
+            let warnings = data.step(&model).unwrap();
+            assert!(warnings.contains(Warning::BadQvel), "{warnings:?}");
+            assert!(data.qvel()[0].is_finite());
+        }
     }
 
     #[test]

@@ -11,6 +11,16 @@
 //! `mj_resetData` (`Data::reset`) before using it again. `Data::step` and
 //! `Data::forward` do that themselves before returning the error.
 //!
+//! Limits, both from MuJoCo 2.2's global hooks:
+//! - A raw `mujoco_sys` call that fails outside [`guarded`] unwinds as an
+//!   ordinary Rust panic carrying MuJoCo's message (still no exit or hang).
+//! - While `mj_loadXML` compiles a model, MuJoCo's compiler swaps in its own
+//!   process-wide error handler (which throws a C++ exception) and restores
+//!   ours afterwards. An engine error raised by *another* thread during that
+//!   window would reach the compiler's handler and abort the process. Loads
+//!   are serialised (see `Model`), and environments compile their models
+//!   once, before stepping, so the window does not arise in this workspace.
+//!
 //! Warnings (bad qacc, NaN reset, full contact buffer, ...) do not go through a
 //! hook we can rely on (MuJoCo calls it only the first time per `mjData`), so
 //! they are read from the `warning[i].number` counters (see `Warnings`); the
