@@ -1,6 +1,11 @@
 //! [`Renderer`]: off-screen rendering of a model through OSMesa (software
 //! OpenGL), so frames can be made on a machine with no display and no GPU.
 //!
+//! Costs measured on this 2-core machine (llvmpipe, debug-profile test
+//! binary with optimised dependencies): creating a renderer 50-80 ms; one
+//! frame at 480x480 about 41 ms at the model's quality (shadows, 4x MSAA),
+//! 2.1 ms with [`Quality::Fast`]; 64x64 fast 0.18 ms.
+//!
 //! Never load libEGL into a process that renders through this module: MuJoCo's
 //! GL loader looks for `eglGetProcAddress` first and then fails with
 //! `gladLoadGL error` (SPEC section 7).
