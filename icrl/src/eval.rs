@@ -804,14 +804,24 @@ impl InContextAgent for RandomAgent {
     }
 }
 
-/// A checksum of every variable in `vs` (names and exact bit patterns, in name
-/// order): equal before and after an evaluation iff no parameter changed.
-pub fn varstore_checksum(vs: &tch::nn::VarStore) -> Result<u64, AgentError> {
-    let mut vars: Vec<(String, tch::Tensor)> = vs.variables().into_iter().collect();
+/// The variables of `vs` as shallow clones (sharing storage), sorted by name:
+/// a handle to read the current parameters while the agent owns `vs`.
+pub fn shared_parameters(vs: &tch::nn::VarStore) -> Vec<(String, tch::Tensor)> {
+    let mut vars: Vec<(String, tch::Tensor)> = vs
+        .variables()
+        .into_iter()
+        .map(|(n, t)| (n, t.shallow_clone()))
+        .collect();
     vars.sort_by(|a, b| a.0.cmp(&b.0));
+    vars
+}
+
+/// A checksum of `params` (names and exact bit patterns, in the given order):
+/// equal before and after an evaluation iff no parameter changed.
+pub fn parameters_checksum(params: &[(String, tch::Tensor)]) -> Result<u64, AgentError> {
     let mut h = 0xcbf2_9ce4_8422_2325u64;
     let mut mix = |x: u64| h = task_seeds::splitmix64(h ^ x);
-    for (name, t) in vars {
+    for (name, t) in params {
         for b in name.bytes() {
             mix(b as u64);
         }
@@ -827,6 +837,11 @@ pub fn varstore_checksum(vs: &tch::nn::VarStore) -> Result<u64, AgentError> {
         }
     }
     Ok(h)
+}
+
+/// [`parameters_checksum`] over every variable of `vs`.
+pub fn varstore_checksum(vs: &tch::nn::VarStore) -> Result<u64, AgentError> {
+    parameters_checksum(&shared_parameters(vs))
 }
 
 #[cfg(test)]

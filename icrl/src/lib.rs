@@ -2,6 +2,7 @@
 //!
 //! - [`agent`]: the interface a pretrained in-context agent offers (reset, act).
 //! - [`eval`]: in-context evaluation on held-out edge-oriented tasks, budget sweeps.
+//! - [`eval_cmd`]: the `eval` command (checkpoints in, JSON/CSV/figures/GIF out).
 //! - [`plots`]: the paper's evaluation figures and a SafeDarkRoom animation.
 //! - [`stats`]: mean and standard error.
 //! - [`task_seeds`]: the split of task seeds between pretraining and evaluation.
@@ -17,6 +18,7 @@ pub mod agent;
 pub mod checkpoint;
 pub mod eppo;
 pub mod eval;
+pub mod eval_cmd;
 pub mod plots;
 pub mod stats;
 pub mod task_seeds;

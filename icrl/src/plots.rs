@@ -92,7 +92,8 @@ pub struct Band {
     /// Standard errors; empty for a plain line.
     pub se: Vec<f64>,
     pub colour: RGBColor,
-    pub dashed: bool,
+    /// A reference curve (random policy): thin line.
+    pub thin: bool,
 }
 
 /// A horizontal reference line (a budget, a random policy's level).
@@ -167,7 +168,7 @@ pub fn figure1(envs: &[EnvCurves], stem: &Path) -> Result<Vec<PathBuf>, PlotErro
                 mean: s.per_episode.iter().map(|p| p.ret.mean).collect(),
                 se: s.per_episode.iter().map(|p| p.ret.se).collect(),
                 colour,
-                dashed: false,
+                thin: false,
             });
             cost.bands.push(Band {
                 label: label.clone(),
@@ -175,7 +176,7 @@ pub fn figure1(envs: &[EnvCurves], stem: &Path) -> Result<Vec<PathBuf>, PlotErro
                 mean: s.per_episode.iter().map(|p| p.cost.mean).collect(),
                 se: s.per_episode.iter().map(|p| p.cost.se).collect(),
                 colour,
-                dashed: false,
+                thin: false,
             });
             cost.hlines.push(HLine {
                 label: format!("budget ({label}, mean {:.2})", s.mean_budget),
@@ -205,7 +206,7 @@ pub fn figure1(envs: &[EnvCurves], stem: &Path) -> Result<Vec<PathBuf>, PlotErro
                     mean: ys,
                     se: Vec::new(),
                     colour: RANDOM_COLOUR,
-                    dashed: true,
+                    thin: true,
                 });
             }
         }
@@ -247,7 +248,7 @@ pub fn figure2(envs: &[EnvCurves], stem: &Path) -> Result<Vec<PathBuf>, PlotErro
                 mean: pts.iter().map(|p| p.total_return.mean).collect(),
                 se: pts.iter().map(|p| p.total_return.se).collect(),
                 colour,
-                dashed: false,
+                thin: false,
             });
             cost.bands.push(Band {
                 label: label.clone(),
@@ -255,28 +256,29 @@ pub fn figure2(envs: &[EnvCurves], stem: &Path) -> Result<Vec<PathBuf>, PlotErro
                 mean: pts.iter().map(|p| p.max_cost.mean).collect(),
                 se: pts.iter().map(|p| p.max_cost.se).collect(),
                 colour,
-                dashed: false,
+                thin: false,
             });
         }
         if let Some(r) = &e.random {
-            let total = r
-                .per_condition
-                .iter()
-                .map(|p| p.total_return.mean)
-                .sum::<f64>()
-                / r.per_condition.len().max(1) as f64;
-            let max = r.per_condition.iter().map(|p| p.max_cost.mean).sum::<f64>()
-                / r.per_condition.len().max(1) as f64;
-            ret.hlines.push(HLine {
-                label: "random policy".into(),
-                y: total,
-                colour: RANDOM_COLOUR,
-            });
-            cost.hlines.push(HLine {
-                label: "random policy".into(),
-                y: max,
-                colour: RANDOM_COLOUR,
-            });
+            let mut pts: Vec<_> = r.per_condition.iter().collect();
+            pts.sort_by(|a, b| a.condition.ctg.total_cmp(&b.condition.ctg));
+            let x: Vec<f64> = pts.iter().map(|p| p.condition.ctg as f64).collect();
+            for (panel, ys) in [
+                (
+                    &mut ret,
+                    pts.iter().map(|p| p.total_return.mean).collect::<Vec<_>>(),
+                ),
+                (&mut cost, pts.iter().map(|p| p.max_cost.mean).collect()),
+            ] {
+                panel.bands.push(Band {
+                    label: "random policy".into(),
+                    x: x.clone(),
+                    mean: ys,
+                    se: Vec::new(),
+                    colour: RANDOM_COLOUR,
+                    thin: true,
+                });
+            }
         }
         returns.push(ret);
         costs.push(cost);
@@ -430,8 +432,10 @@ fn draw_panel<DB: DrawingBackend>(
         let pts: Vec<(f64, f64)> = b.x.iter().copied().zip(b.mean.iter().copied()).collect();
         let colour = b.colour;
         let style = colour.stroke_width(2);
-        let series = if b.dashed {
-            chart.draw_series(DashedLineSeries::new(pts, 6, 4, style))
+        // Reference curves thin and solid (thick dashed polylines leave
+        // marks at sharp corners).
+        let series = if b.thin {
+            chart.draw_series(LineSeries::new(pts, colour.stroke_width(1)))
         } else {
             chart.draw_series(LineSeries::new(pts, style))
         };

@@ -1,0 +1,677 @@
+//! The `eval` command: load checkpoints, run the paper's evaluation protocol
+//! on held-out edge-oriented tasks, write JSON, CSV, figures and an animation.
+//!
+//! Protocols (SPEC section 5):
+//! - *Figure 1* (always): K episodes per task; EPPO conditioned on `n_budgets`
+//!   budgets drawn from the pretraining range ([1, 15] SafeDarkRoom,
+//!   [10, 50] Point and Car), averaged; supervised (AD) with RTG 1, CTG 0;
+//!   explicit `budgets` replace either.
+//! - *Figure 2* (`sweep`): EPPO over a budget grid (1..15 step 1, 10..50
+//!   step 5); AD over CTG 5..15 / 0..10 step 1 with RTG = max(0.5, CTG / 10).
+//! - A random policy is evaluated beside them for scale.
+//!
+//! Files in `out`: `{method}_{env}[_sweep].json` (settings, raw per-episode
+//! results, summary), `{method}_{env}_episodes.csv`,
+//! `{method}_{env}[_sweep]_conditions.csv`, `figure1_{env}.{png,svg}`,
+//! `figure2_{env}.{png,svg}`, `render_{method}_{env}.gif`.
+
+use std::fmt;
+use std::io::Write;
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use indicatif::{ProgressBar, ProgressStyle};
+use safety_envs::{CmdpEnv, EnvError, EnvName, EnvOptions, make_env, spawn_config};
+use serde::Serialize;
+use thiserror::Error;
+
+use crate::agent::{AgentError, Conditioning, InContextAgent};
+use crate::eval::{
+    self, BudgetRange, EvalConfig, EvalError, EvalResult, RandomAgent, Summary, grid,
+    sample_budgets, targets_sweep,
+};
+use crate::plots::{self, EnvCurves, PlotError};
+use crate::task_seeds::PretrainTasks;
+
+/// An `eval` command that failed.
+#[derive(Debug, Error)]
+pub enum EvalCmdError {
+    #[error(transparent)]
+    Eval(#[from] EvalError),
+    #[error(transparent)]
+    Plot(#[from] PlotError),
+    #[error(transparent)]
+    Env(#[from] EnvError),
+    #[error(transparent)]
+    Agent(#[from] AgentError),
+    /// A checkpoint that cannot be evaluated here (other environment, shape).
+    #[error("checkpoint {path}: {message}")]
+    Checkpoint { path: String, message: String },
+    #[error("invalid eval options: {0}")]
+    Options(String),
+    #[error("writing {path}: {source}")]
+    Io {
+        path: String,
+        source: std::io::Error,
+    },
+    #[error("writing {path}: {source}")]
+    Json {
+        path: String,
+        source: serde_json::Error,
+    },
+}
+
+/// Which pretraining produced an agent.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub enum Method {
+    /// Safe reinforcement pretraining (EPPO): conditioned on a budget.
+    Eppo,
+    /// Safe supervised pretraining (algorithm distillation with RTG/CTG).
+    Ad,
+    /// A uniformly random policy.
+    Random,
+}
+
+impl Method {
+    /// File-name stem.
+    pub fn stem(self) -> &'static str {
+        match self {
+            Method::Eppo => "eppo",
+            Method::Ad => "ad",
+            Method::Random => "random",
+        }
+    }
+}
+
+impl fmt::Display for Method {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Method::Eppo => "EPPO",
+            Method::Ad => "AD",
+            Method::Random => "random policy",
+        })
+    }
+}
+
+/// A pretrained (or random) agent ready to evaluate, with what its
+/// checkpoint says about it.
+pub struct LoadedAgent {
+    pub method: Method,
+    pub agent: Box<dyn InContextAgent>,
+    /// The checkpoint folder, if any.
+    pub checkpoint: Option<PathBuf>,
+    /// The pretraining tasks the checkpoint records (for the held-out check).
+    pub pretrain_tasks: Option<PretrainTasks>,
+    /// The budget range EPPO was pretrained on (defaults to SPEC's).
+    pub budget_range: Option<BudgetRange>,
+    /// The agent's parameters (shallow clones, see
+    /// [`eval::shared_parameters`]): checksummed before and after evaluating.
+    pub parameters: Vec<(String, tch::Tensor)>,
+    /// What the checkpoint's run reached (e.g. "update 1200 of 3000"), for the report.
+    pub note: String,
+}
+
+/// Everything the `eval` command needs, already parsed.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EvalOptions {
+    pub env: EnvName,
+    /// Evaluation tasks (paper: 16).
+    pub tasks: usize,
+    /// Episodes per task; `None`: 50 SafeDarkRoom, 20 Point and Car.
+    pub episodes: Option<usize>,
+    /// Explicit budgets (EPPO) or CTGs (AD) for the Figure 1 protocol.
+    pub budgets: Option<Vec<f32>>,
+    /// Budgets sampled for EPPO when `budgets` is `None` (paper: 100).
+    pub n_budgets: usize,
+    /// RTG for AD in the Figure 1 protocol (paper: 1).
+    pub rtg: f32,
+    /// Also run the budget sweep (Figure 2).
+    pub sweep: bool,
+    /// Also evaluate a random policy for scale.
+    pub random: bool,
+    /// Write an animation of one task across its K episodes.
+    pub render: bool,
+    pub out: PathBuf,
+    pub eval_seed: u64,
+    pub batch: usize,
+    pub threads: usize,
+    pub greedy: bool,
+    /// Time limit override (agent steps); `None` keeps the environment's.
+    pub max_episode_steps: Option<usize>,
+    /// Show a progress bar.
+    pub progress: bool,
+    /// The command line, stored in every output file.
+    pub command: String,
+}
+
+/// The defaults of one environment.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EnvDefaults {
+    pub title: &'static str,
+    pub episodes: usize,
+    pub budget_range: BudgetRange,
+    /// EPPO's sweep grid.
+    pub budget_grid: Vec<f32>,
+    /// AD's sweep CTGs.
+    pub ctg_grid: Vec<f32>,
+}
+
+/// SPEC section 5's settings for `env`.
+pub fn env_defaults(env: EnvName) -> EnvDefaults {
+    match env {
+        EnvName::DarkRoom => EnvDefaults {
+            title: "SafeDarkRoom",
+            episodes: 50,
+            budget_range: BudgetRange {
+                low: 1.0,
+                high: 15.0,
+            },
+            budget_grid: grid(1.0, 15.0, 1.0),
+            ctg_grid: grid(5.0, 15.0, 1.0),
+        },
+        EnvName::Point | EnvName::Car => EnvDefaults {
+            title: if env == EnvName::Point {
+                "SafeDarkMujoco Point"
+            } else {
+                "SafeDarkMujoco Car"
+            },
+            episodes: 20,
+            budget_range: BudgetRange {
+                low: 10.0,
+                high: 50.0,
+            },
+            budget_grid: grid(10.0, 50.0, 5.0),
+            ctg_grid: grid(0.0, 10.0, 1.0),
+        },
+    }
+}
+
+/// One evaluation's report: exact settings, raw results and their summary.
+#[derive(Debug, Serialize)]
+pub struct EvalReport {
+    pub env: String,
+    pub method: Method,
+    pub checkpoint: Option<String>,
+    pub checkpoint_note: String,
+    /// "figure1" or "sweep".
+    pub protocol: String,
+    pub command: String,
+    pub tasks: usize,
+    pub episodes: usize,
+    pub max_episode_steps: usize,
+    pub threads: usize,
+    /// Parameter checksums before and after the evaluation (equal: frozen).
+    pub parameters_checksum: Option<[u64; 2]>,
+    pub wall_seconds: f64,
+    pub summary: Summary,
+    pub result: EvalResult,
+}
+
+/// The conditions of a protocol for a method, validated.
+pub fn conditions(
+    method: Method,
+    sweep: bool,
+    opts: &EvalOptions,
+    range: BudgetRange,
+) -> Result<Vec<Conditioning>, EvalCmdError> {
+    let d = env_defaults(opts.env);
+    let conds = match (method, sweep) {
+        (Method::Eppo, false) => {
+            let budgets = match &opts.budgets {
+                Some(b) => b.clone(),
+                None => sample_budgets(range, opts.n_budgets, opts.eval_seed)?,
+            };
+            for &b in &budgets {
+                range.check(b)?;
+            }
+            budgets
+                .into_iter()
+                .map(|ctg| Conditioning::Budget { ctg })
+                .collect()
+        }
+        (Method::Eppo, true) => d
+            .budget_grid
+            .iter()
+            .map(|&b| range.check(b).map(|ctg| Conditioning::Budget { ctg }))
+            .collect::<Result<Vec<_>, _>>()?,
+        (Method::Ad, false) => match &opts.budgets {
+            Some(b) => b
+                .iter()
+                .map(|&ctg| Conditioning::Targets { rtg: opts.rtg, ctg })
+                .collect(),
+            None => vec![Conditioning::Targets {
+                rtg: opts.rtg,
+                ctg: 0.0,
+            }],
+        },
+        (Method::Ad, true) => targets_sweep(&d.ctg_grid),
+        // The random policy ignores its conditioning; the budgets only decide
+        // what counts as a violation.
+        (Method::Random, false) => match &opts.budgets {
+            Some(b) => b.iter().map(|&ctg| Conditioning::Budget { ctg }).collect(),
+            None => vec![Conditioning::Budget {
+                ctg: (range.low + range.high) / 2.0,
+            }],
+        },
+        (Method::Random, true) => d
+            .budget_grid
+            .iter()
+            .map(|&ctg| Conditioning::Budget { ctg })
+            .collect(),
+    };
+    if conds.is_empty() {
+        return Err(EvalCmdError::Options(
+            "no budgets to evaluate (--budgets is empty)".into(),
+        ));
+    }
+    Ok(conds)
+}
+
+fn io_err(path: &Path) -> impl Fn(std::io::Error) -> EvalCmdError + '_ {
+    move |source| EvalCmdError::Io {
+        path: path.display().to_string(),
+        source,
+    }
+}
+
+/// Writes `value` as pretty JSON to `path`.
+fn write_json(path: &Path, value: &impl Serialize) -> Result<(), EvalCmdError> {
+    let file = std::fs::File::create(path).map_err(io_err(path))?;
+    // Compact: the raw per-episode arrays run to hundreds of thousands of numbers.
+    serde_json::to_writer(std::io::BufWriter::new(file), value).map_err(|source| {
+        EvalCmdError::Json {
+            path: path.display().to_string(),
+            source,
+        }
+    })
+}
+
+/// The CSV files of one report: per-episode curve and per-condition sweep.
+fn write_csvs(report: &EvalReport, stem: &Path) -> Result<Vec<PathBuf>, EvalCmdError> {
+    let header = format!(
+        "# icrl eval: {} on {} ({} protocol), {} tasks x {} episodes x {} conditions, eval seed {}, greedy {}\n# command: {}\n",
+        report.method,
+        report.env,
+        report.protocol,
+        report.tasks,
+        report.episodes,
+        report.result.conditions.len(),
+        report.result.eval_seed,
+        report.result.greedy,
+        report.command
+    );
+    let episodes = PathBuf::from(format!("{}_episodes.csv", stem.display()));
+    let mut f = std::fs::File::create(&episodes).map_err(io_err(&episodes))?;
+    let mut text = header.clone();
+    text.push_str("k,return_mean,return_se,cost_mean,cost_se,violation_mean,violation_se,success_mean,success_se,n_tasks\n");
+    for e in &report.summary.per_episode {
+        text.push_str(&format!(
+            "{},{},{},{},{},{},{},{},{},{}\n",
+            e.k,
+            e.ret.mean,
+            e.ret.se,
+            e.cost.mean,
+            e.cost.se,
+            e.violation.mean,
+            e.violation.se,
+            e.success.mean,
+            e.success.se,
+            e.ret.n
+        ));
+    }
+    f.write_all(text.as_bytes()).map_err(io_err(&episodes))?;
+
+    let conds = PathBuf::from(format!("{}_conditions.csv", stem.display()));
+    let mut f = std::fs::File::create(&conds).map_err(io_err(&conds))?;
+    let mut text = header;
+    text.push_str("rtg,ctg,total_return_mean,total_return_se,max_cost_mean,max_cost_se,mean_cost_mean,mean_cost_se,violation_mean,violation_se,n_tasks\n");
+    for c in &report.summary.per_condition {
+        text.push_str(&format!(
+            "{},{},{},{},{},{},{},{},{},{},{}\n",
+            c.condition.rtg.map(|r| r.to_string()).unwrap_or_default(),
+            c.condition.ctg,
+            c.total_return.mean,
+            c.total_return.se,
+            c.max_cost.mean,
+            c.max_cost.se,
+            c.mean_cost.mean,
+            c.mean_cost.se,
+            c.violation.mean,
+            c.violation.se,
+            c.total_return.n
+        ));
+    }
+    f.write_all(text.as_bytes()).map_err(io_err(&conds))?;
+    Ok(vec![episodes, conds])
+}
+
+/// Runs one protocol for one agent and writes its JSON and CSVs.
+fn run_one(
+    loaded: &mut LoadedAgent,
+    sweep: bool,
+    opts: &EvalOptions,
+    record: bool,
+    written: &mut Vec<PathBuf>,
+) -> Result<EvalReport, EvalCmdError> {
+    let d = env_defaults(opts.env);
+    let range = loaded.budget_range.unwrap_or(d.budget_range);
+    let conds = conditions(loaded.method, sweep, opts, range)?;
+    let episodes = opts.episodes.unwrap_or(d.episodes);
+    let cfg = EvalConfig {
+        tasks: opts.tasks,
+        episodes,
+        conditions: conds,
+        eval_seed: opts.eval_seed,
+        batch: opts.batch,
+        threads: opts.threads,
+        greedy: opts.greedy,
+        pretrain_tasks: loaded.pretrain_tasks.clone(),
+        record: record.then_some((0, 0)),
+    };
+    cfg.validate()?;
+    let env_options = EnvOptions {
+        max_episode_steps: opts.max_episode_steps,
+    };
+    let env = opts.env;
+    let make = move || -> Result<Box<dyn CmdpEnv>, EnvError> { make_env(env, &env_options) };
+    let t_max = make()?.max_episode_steps();
+
+    let protocol = if sweep { "sweep" } else { "figure1" };
+    let bar = if opts.progress {
+        let bar = ProgressBar::new((cfg.trajectories() * episodes) as u64);
+        bar.set_style(
+            ProgressStyle::with_template(
+                "{prefix:>24} [{elapsed_precise}] {wide_bar} {pos}/{len} episodes (eta {eta})",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        bar.set_prefix(format!("{} {protocol}", loaded.method));
+        bar
+    } else {
+        ProgressBar::hidden()
+    };
+    let checksum = |l: &LoadedAgent| -> Result<Option<u64>, AgentError> {
+        if l.parameters.is_empty() {
+            Ok(None)
+        } else {
+            eval::parameters_checksum(&l.parameters).map(Some)
+        }
+    };
+    let before = checksum(loaded)?;
+    let start = Instant::now();
+    let result = eval::evaluate(
+        loaded.agent.as_mut(),
+        &make,
+        &spawn_config(env),
+        &cfg,
+        &mut |n| bar.inc(n as u64),
+    )?;
+    let wall_seconds = start.elapsed().as_secs_f64();
+    bar.finish_and_clear();
+    let after = checksum(loaded)?;
+    if let (Some(b), Some(a)) = (before, after)
+        && a != b
+    {
+        return Err(EvalCmdError::Checkpoint {
+            path: checkpoint_name(loaded),
+            message: format!(
+                "parameters changed during evaluation (checksum {b:#x} -> {a:#x}): evaluation must be frozen"
+            ),
+        });
+    }
+    let report = EvalReport {
+        env: env.to_string(),
+        method: loaded.method,
+        checkpoint: loaded.checkpoint.as_ref().map(|p| p.display().to_string()),
+        checkpoint_note: loaded.note.clone(),
+        protocol: protocol.into(),
+        command: opts.command.clone(),
+        tasks: opts.tasks,
+        episodes,
+        max_episode_steps: t_max,
+        threads: opts.threads,
+        parameters_checksum: before.zip(after).map(|(b, a)| [b, a]),
+        wall_seconds,
+        summary: result.summary(),
+        result,
+    };
+    let stem = opts.out.join(format!(
+        "{}_{}{}",
+        loaded.method.stem(),
+        env,
+        if sweep { "_sweep" } else { "" }
+    ));
+    let json = stem.with_extension("json");
+    write_json(&json, &report)?;
+    written.push(json);
+    written.extend(write_csvs(&report, &stem)?);
+    Ok(report)
+}
+
+fn checkpoint_name(loaded: &LoadedAgent) -> String {
+    loaded
+        .checkpoint
+        .as_ref()
+        .map(|p| p.display().to_string())
+        .unwrap_or_else(|| loaded.method.to_string())
+}
+
+/// What one `eval` run produced.
+#[derive(Debug, Default)]
+pub struct EvalOutputs {
+    /// Every file written.
+    pub files: Vec<PathBuf>,
+    /// One line per (method, protocol): the headline numbers.
+    pub lines: Vec<String>,
+}
+
+fn headline(r: &EvalReport) -> String {
+    let t = &r.summary.trend;
+    format!(
+        "{} {} {}: return first {} eps {:.3}±{:.3} -> last {:.3}±{:.3}; cost {:.3}±{:.3} -> {:.3}±{:.3}; \
+         over-budget rate last {:.3}; {:.1} s",
+        r.method,
+        r.env,
+        r.protocol,
+        t.window,
+        t.first_return.mean,
+        t.first_return.se,
+        t.last_return.mean,
+        t.last_return.se,
+        t.first_cost.mean,
+        t.first_cost.se,
+        t.last_cost.mean,
+        t.last_cost.se,
+        r.summary
+            .per_episode
+            .last()
+            .map(|e| e.violation.mean)
+            .unwrap_or(f64::NAN),
+        r.wall_seconds
+    )
+}
+
+/// Runs the `eval` command for `agents` (plus a random policy when asked).
+pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutputs, EvalCmdError> {
+    if opts.tasks == 0 {
+        return Err(EvalError::Config(
+            "the task set is empty: ask for at least one evaluation task (--tasks)".into(),
+        )
+        .into());
+    }
+    if agents.is_empty() && !opts.random {
+        return Err(EvalCmdError::Options(
+            "nothing to evaluate: give --checkpoint DIR and/or --random".into(),
+        ));
+    }
+    let probe = make_env(
+        opts.env,
+        &EnvOptions {
+            max_episode_steps: opts.max_episode_steps,
+        },
+    )?;
+    if opts.random {
+        agents.push(LoadedAgent {
+            method: Method::Random,
+            agent: Box::new(RandomAgent::new(probe.action_space(), opts.eval_seed)),
+            checkpoint: None,
+            pretrain_tasks: None,
+            budget_range: None,
+            parameters: Vec::new(),
+            note: String::new(),
+        });
+    }
+    std::fs::create_dir_all(&opts.out).map_err(io_err(&opts.out))?;
+    let d = env_defaults(opts.env);
+    let mut out = EvalOutputs::default();
+    let mut fig1 = EnvCurves {
+        env: d.title.into(),
+        methods: Vec::new(),
+        random: None,
+    };
+    let mut fig2 = fig1.clone();
+    for (i, loaded) in agents.iter_mut().enumerate() {
+        // Record the first trajectory of the first agent (the random policy
+        // comes last, so it is recorded only when it is alone).
+        let record = opts.render && i == 0;
+        let report = run_one(loaded, false, opts, record, &mut out.files)?;
+        out.lines.push(headline(&report));
+        if record && let Some(rec) = &report.result.recording {
+            let gif = opts
+                .out
+                .join(format!("render_{}_{}.gif", loaded.method.stem(), opts.env));
+            render(opts.env, &report, rec, &gif)?;
+            out.files.push(gif);
+        }
+        match loaded.method {
+            Method::Random => fig1.random = Some(report.summary),
+            m => fig1.methods.push((m.to_string(), report.summary)),
+        }
+        if opts.sweep {
+            let report = run_one(loaded, true, opts, false, &mut out.files)?;
+            out.lines.push(headline(&report));
+            match loaded.method {
+                Method::Random => fig2.random = Some(report.summary),
+                m => fig2.methods.push((m.to_string(), report.summary)),
+            }
+        }
+    }
+    out.files.extend(plots::figure1(
+        &[fig1],
+        &opts.out.join(format!("figure1_{}", opts.env)),
+    )?);
+    if opts.sweep {
+        out.files.extend(plots::figure2(
+            &[fig2],
+            &opts.out.join(format!("figure2_{}", opts.env)),
+        )?);
+    }
+    Ok(out)
+}
+
+/// The animation of the recorded trajectory.
+fn render(
+    env: EnvName,
+    report: &EvalReport,
+    rec: &eval::Recording,
+    path: &Path,
+) -> Result<(), EvalCmdError> {
+    let task = &report.result.tasks[rec.task];
+    let budget = report.result.conditions[rec.condition].ctg;
+    match env {
+        EnvName::DarkRoom => {
+            let k_n = rec.episodes.len();
+            // Every step of the first three and the last two episodes; one
+            // frame per episode in between.
+            plots::darkroom_animation(rec, task, budget, &|k| k < 3 || k + 2 >= k_n, path)?;
+            Ok(())
+        }
+        EnvName::Point | EnvName::Car => Err(EvalCmdError::Options(format!(
+            "--render is not available for {env} yet"
+        ))),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn options(out: PathBuf) -> EvalOptions {
+        EvalOptions {
+            env: EnvName::DarkRoom,
+            tasks: 3,
+            episodes: Some(4),
+            budgets: None,
+            n_budgets: 3,
+            rtg: 1.0,
+            sweep: true,
+            random: true,
+            render: false,
+            out,
+            eval_seed: 0,
+            batch: 64,
+            threads: 1,
+            greedy: false,
+            max_episode_steps: None,
+            progress: false,
+            command: "test".into(),
+        }
+    }
+
+    #[test]
+    fn random_policy_evaluation_writes_every_file() {
+        let dir = std::env::temp_dir().join(format!("icrl-eval-cmd-{}", std::process::id()));
+        let out = run(Vec::new(), &options(dir.clone())).unwrap();
+        for name in [
+            "random_darkroom.json",
+            "random_darkroom_episodes.csv",
+            "random_darkroom_conditions.csv",
+            "random_darkroom_sweep.json",
+            "random_darkroom_sweep_conditions.csv",
+            "figure1_darkroom.png",
+            "figure1_darkroom.svg",
+            "figure2_darkroom.png",
+            "figure2_darkroom.svg",
+        ] {
+            let p = dir.join(name);
+            assert!(out.files.contains(&p), "{name} not reported");
+            assert!(
+                std::fs::metadata(&p).unwrap().len() > 100,
+                "{name} is empty"
+            );
+        }
+        let json: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(dir.join("random_darkroom_sweep.json")).unwrap())
+                .unwrap();
+        assert_eq!(json["result"]["conditions"].as_array().unwrap().len(), 15);
+        assert_eq!(json["episodes"], 4);
+        let csv = std::fs::read_to_string(dir.join("random_darkroom_episodes.csv")).unwrap();
+        assert_eq!(csv.lines().filter(|l| !l.starts_with('#')).count(), 1 + 4);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn out_of_range_budgets_and_empty_task_sets_are_refused() {
+        let dir = std::env::temp_dir().join(format!("icrl-eval-cmd-bad-{}", std::process::id()));
+        let mut opts = options(dir.clone());
+        opts.budgets = Some(vec![5.0, 20.0]);
+        let range = env_defaults(EnvName::DarkRoom).budget_range;
+        let e = conditions(Method::Eppo, false, &opts, range)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("budget 20 is outside the range [1, 15]"), "{e}");
+        opts.budgets = Some(vec![]);
+        let e = conditions(Method::Eppo, false, &opts, range)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("no budgets"), "{e}");
+        let mut opts = options(dir.clone());
+        opts.tasks = 0;
+        let e = run(Vec::new(), &opts).unwrap_err().to_string();
+        assert!(e.contains("task set is empty"), "{e}");
+        let mut opts = options(dir);
+        opts.random = false;
+        let e = run(Vec::new(), &opts).unwrap_err().to_string();
+        assert!(e.contains("nothing to evaluate"), "{e}");
+    }
+}
