@@ -13,6 +13,8 @@
 //! - [`model`]: the one causal transformer (with KV cache) every learner shares.
 //! - [`histories`]: learning histories in HDF5 (DSRL-compatible layout).
 //! - [`ppo_lagrangian`]: PPO-Lagrangian, the learner whose histories supervised pretraining distils.
+//! - [`dataset`]: learning-history datasets (PPO-Lagrangian or noisy optimal) written to HDF5.
+//! - [`ad`]: safe supervised pretraining (algorithm distillation with RTG and CTG).
 
 pub mod agent;
 pub mod checkpoint;
@@ -27,6 +29,8 @@ pub mod optim;
 pub mod presets;
 pub mod histories;
 pub mod ppo_lagrangian;
+pub mod dataset;
+pub mod ad;
 
 #[cfg(test)]
 mod tests {
