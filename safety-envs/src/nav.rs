@@ -321,6 +321,14 @@ impl SafeDarkMujoco {
         &self.model
     }
 
+    /// The compiled model, for experiments that change physics parameters in
+    /// place (friction, gravity, timestep, ...). Sizes cannot change through
+    /// it; edits take effect at the next step. The goal and hazard sites are
+    /// rewritten by every [`CmdpEnv::set_task`].
+    pub fn model_mut(&mut self) -> &mut Model {
+        &mut self.model
+    }
+
     /// The simulation state (for rendering and tests).
     pub fn data(&self) -> &Data {
         &self.data

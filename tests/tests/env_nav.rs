@@ -337,3 +337,30 @@ fn bad_configs_are_errors() {
         Err(EnvError::InvalidConfig(_))
     ));
 }
+
+#[test]
+fn a_blown_up_simulation_is_an_error_not_a_silent_reset() {
+    let mut env = SafeDarkMujoco::new(NavConfig::new(Robot::Car)).unwrap();
+    let mut obs = obs_buf(&env);
+    env.reset(0, &mut obs).unwrap();
+    // An absurd time step makes the integrator diverge to NaN or huge values,
+    // which MuJoCo answers by resetting the state with a warning.
+    env.model_mut().raw_mut().opt.timestep = 1e6;
+    let mut result = Ok(StepOutcome::default());
+    for _ in 0..50 {
+        result = env.step(Action::Continuous(&[1.0, -1.0]), &mut obs);
+        if result.is_err() {
+            break;
+        }
+    }
+    let err = result.expect_err("no step reported the instability");
+    assert!(matches!(err, EnvError::Unstable(_)), "{err}");
+    // The episode is over; a reset (with a sane time step) starts a new one.
+    assert!(matches!(
+        env.step(Action::Continuous(&[0.0, 0.0]), &mut obs),
+        Err(EnvError::State(_))
+    ));
+    env.model_mut().raw_mut().opt.timestep = 0.004;
+    env.reset(0, &mut obs).unwrap();
+    env.step(Action::Continuous(&[0.0, 0.0]), &mut obs).unwrap();
+}
