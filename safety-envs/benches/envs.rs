@@ -6,7 +6,8 @@
 //!
 //! Plain timing loops (no harness); each figure is the best of several
 //! repetitions, interleaved with its baseline so machine noise hits both.
-//! Set `ENVS_BENCH_QUICK=1` for a short smoke run.
+//! Set `ENVS_BENCH_QUICK=1` for a short smoke run, `ENVS_BENCH_ONLY=vec` (or
+//! `raw`, `reset`, `darkroom`, `paper`) to run one group.
 //!
 //! 1. SafeDarkMujoco Point and Car agent steps/s against `raw_step.c`, a plain
 //!    C loop doing the same 5 `mj_step` per agent step on the same compiled
@@ -312,19 +313,32 @@ fn paper_shape(robot: Robot, trajectories: usize, k: usize, rows: &mut Vec<Row>)
 fn main() {
     let quick = std::env::var("ENVS_BENCH_QUICK").is_ok_and(|v| v == "1");
     let scale = if quick { 10 } else { 1 };
+    let only = std::env::var("ENVS_BENCH_ONLY").ok();
+    let run = |group: &str| only.as_deref().is_none_or(|o| o == group);
     let mut rows = Vec::new();
     let started = Instant::now();
-    for robot in [Robot::Point, Robot::Car] {
-        mujoco_vs_raw(robot, 100_000 / scale, 5, &mut rows);
+    if run("raw") {
+        for robot in [Robot::Point, Robot::Car] {
+            mujoco_vs_raw(robot, 100_000 / scale, 5, &mut rows);
+        }
     }
-    for robot in [Robot::Point, Robot::Car] {
-        reset_time(robot, 20_000 / scale, &mut rows);
+    if run("reset") {
+        for robot in [Robot::Point, Robot::Car] {
+            reset_time(robot, 20_000 / scale, &mut rows);
+        }
     }
-    darkroom_rate(50_000_000 / scale, &mut rows);
-    vec_scaling(EnvName::Point, 16, 4_000 / scale, &mut rows);
-    vec_scaling(EnvName::DarkRoom, 64, 100_000 / scale, &mut rows);
-    for robot in [Robot::Point, Robot::Car] {
-        paper_shape(robot, 20 / scale.min(10), 10, &mut rows);
+    if run("darkroom") {
+        darkroom_rate(50_000_000 / scale, &mut rows);
+    }
+    if run("vec") {
+        vec_scaling(EnvName::Point, 16, 4_000 / scale, &mut rows);
+        vec_scaling(EnvName::Car, 16, 1_000 / scale, &mut rows);
+        vec_scaling(EnvName::DarkRoom, 64, 100_000 / scale, &mut rows);
+    }
+    if run("paper") {
+        for robot in [Robot::Point, Robot::Car] {
+            paper_shape(robot, 20 / scale.min(10), 10, &mut rows);
+        }
     }
 
     let threads = std::thread::available_parallelism().map_or(0, |n| n.get());
