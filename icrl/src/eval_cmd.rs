@@ -107,8 +107,27 @@ pub struct LoadedAgent {
     /// The agent's parameters (shallow clones, see
     /// [`eval::shared_parameters`]): checksummed before and after evaluating.
     pub parameters: Vec<(String, tch::Tensor)>,
+    /// The model's context limit, when it has a hard one (EPPO).
+    pub context: Option<ContextLimit>,
     /// What the checkpoint's run reached (e.g. "update 1200 of 3000"), for the report.
     pub note: String,
+}
+
+/// A model whose context holds a fixed number of steps (EPPO): its time
+/// limit and how many of its episodes fit.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct ContextLimit {
+    /// Time limit the policy was trained with.
+    pub max_episode_steps: usize,
+    /// Steps the model's context holds.
+    pub max_len: usize,
+}
+
+impl ContextLimit {
+    /// Whole episodes of `t_max` steps that fit.
+    pub fn episodes(&self, t_max: usize) -> usize {
+        self.max_len / t_max.max(1)
+    }
 }
 
 /// Everything the `eval` command needs, already parsed.
@@ -245,13 +264,14 @@ pub fn conditions(
             }],
         },
         (Method::Ad, true) => targets_sweep(&d.ctg_grid),
-        // The random policy ignores its conditioning; the budgets only decide
-        // what counts as a violation.
+        // The random policy ignores its conditioning; the budgets (EPPO's)
+        // only decide what counts as a violation.
         (Method::Random, false) => match &opts.budgets {
             Some(b) => b.iter().map(|&ctg| Conditioning::Budget { ctg }).collect(),
-            None => vec![Conditioning::Budget {
-                ctg: (range.low + range.high) / 2.0,
-            }],
+            None => sample_budgets(range, opts.n_budgets, opts.eval_seed)?
+                .into_iter()
+                .map(|ctg| Conditioning::Budget { ctg })
+                .collect(),
         },
         (Method::Random, true) => d
             .budget_grid
@@ -356,7 +376,38 @@ fn run_one(
     let d = env_defaults(opts.env);
     let range = loaded.budget_range.unwrap_or(d.budget_range);
     let conds = conditions(loaded.method, sweep, opts, range)?;
-    let episodes = opts.episodes.unwrap_or(d.episodes);
+    // The time limit: asked for, else the one the policy was trained with,
+    // else the environment's.
+    let env = opts.env;
+    let env_options = EnvOptions {
+        max_episode_steps: opts
+            .max_episode_steps
+            .or(loaded.context.map(|c| c.max_episode_steps)),
+    };
+    let make = move || -> Result<Box<dyn CmdpEnv>, EnvError> { make_env(env, &env_options) };
+    let t_max = make()?.max_episode_steps();
+    // Episodes: asked for, else the paper's K capped by what the context holds.
+    let episodes = match (opts.episodes, loaded.context) {
+        (Some(k), Some(c)) if k * t_max > c.max_len => {
+            return Err(EvalCmdError::Options(format!(
+                "{} episodes of {t_max} steps need a context of {} steps; the checkpoint's model holds {} \
+                 ({} episodes): pass --episodes {} or less",
+                k,
+                k * t_max,
+                c.max_len,
+                c.episodes(t_max),
+                c.episodes(t_max)
+            )));
+        }
+        (Some(k), _) => k,
+        (None, Some(c)) => d.episodes.min(c.episodes(t_max)),
+        (None, None) => d.episodes,
+    };
+    if episodes == 0 {
+        return Err(EvalCmdError::Options(format!(
+            "no whole episode of {t_max} steps fits the model's context"
+        )));
+    }
     let cfg = EvalConfig {
         tasks: opts.tasks,
         episodes,
@@ -369,12 +420,6 @@ fn run_one(
         record: record.then_some((0, 0)),
     };
     cfg.validate()?;
-    let env_options = EnvOptions {
-        max_episode_steps: opts.max_episode_steps,
-    };
-    let env = opts.env;
-    let make = move || -> Result<Box<dyn CmdpEnv>, EnvError> { make_env(env, &env_options) };
-    let t_max = make()?.max_episode_steps();
 
     let protocol = if sweep { "sweep" } else { "figure1" };
     let bar = if opts.progress {
@@ -518,6 +563,7 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
             pretrain_tasks: None,
             budget_range: None,
             parameters: Vec::new(),
+            context: None,
             note: String::new(),
         });
     }
@@ -530,11 +576,19 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
         random: None,
     };
     let mut fig2 = fig1.clone();
+    // The random policy runs as many episodes as the first agent did.
+    let mut first_episodes = None;
     for (i, loaded) in agents.iter_mut().enumerate() {
         // Record the first trajectory of the first agent (the random policy
         // comes last, so it is recorded only when it is alone).
         let record = opts.render && i == 0;
+        let mut opts = opts.clone();
+        if loaded.method == Method::Random {
+            opts.episodes = opts.episodes.or(first_episodes);
+        }
+        let opts = &opts;
         let report = run_one(loaded, false, opts, record, &mut out.files)?;
+        first_episodes = first_episodes.or(Some(report.episodes));
         out.lines.push(headline(&report));
         if record && let Some(rec) = &report.result.recording {
             let gif = opts

@@ -3,6 +3,7 @@
 //! - [`agent`]: the interface a pretrained in-context agent offers (reset, act).
 //! - [`eval`]: in-context evaluation on held-out edge-oriented tasks, budget sweeps.
 //! - [`eval_cmd`]: the `eval` command (checkpoints in, JSON/CSV/figures/GIF out).
+//! - [`eval_load`]: loading EPPO and AD checkpoints for evaluation.
 //! - [`plots`]: the paper's evaluation figures and a SafeDarkRoom animation.
 //! - [`stats`]: mean and standard error.
 //! - [`task_seeds`]: the split of task seeds between pretraining and evaluation.
@@ -21,6 +22,7 @@ pub mod checkpoint;
 pub mod eppo;
 pub mod eval;
 pub mod eval_cmd;
+pub mod eval_load;
 pub mod plots;
 pub mod stats;
 pub mod task_seeds;

@@ -343,6 +343,16 @@ fn draw_grid<DB: DrawingBackend>(
     Ok(())
 }
 
+/// Tick labels: whole numbers without a fraction, others with up to 3 digits.
+fn tick(v: &f64) -> String {
+    if (v - v.round()).abs() < 1e-9 {
+        format!("{v:.0}")
+    } else {
+        let s = format!("{v:.3}");
+        s.trim_end_matches('0').to_string()
+    }
+}
+
 /// The x and y extents of everything in a panel, padded.
 fn extents(panel: &Panel) -> ((f64, f64), (f64, f64)) {
     let mut x = (f64::INFINITY, f64::NEG_INFINITY);
@@ -399,6 +409,8 @@ fn draw_panel<DB: DrawingBackend>(
         .map_err(e)?;
     chart
         .configure_mesh()
+        .x_label_formatter(&tick)
+        .y_label_formatter(&tick)
         .x_desc(&panel.x_label)
         .y_desc(&panel.y_label)
         .label_style(("sans-serif", 13))

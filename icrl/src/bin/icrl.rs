@@ -6,6 +6,9 @@ use std::process::ExitCode;
 
 use clap::{Args, Parser, Subcommand};
 
+#[path = "icrl_eval/mod.rs"]
+mod icrl_eval;
+
 #[derive(Debug, Parser)]
 #[command(
     name = "icrl",
@@ -21,6 +24,8 @@ struct Cli {
 enum Command {
     /// Pretrain an in-context agent (EPPO: Algorithm 1 of the paper).
     Pretrain(PretrainArgs),
+    /// Evaluate checkpoints in context on held-out edge-oriented tasks: JSON, CSV, figures.
+    Eval(icrl_eval::EvalArgs),
 }
 
 #[derive(Debug, Args)]
@@ -81,6 +86,7 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Pretrain(args) => pretrain(args),
+        Command::Eval(args) => icrl_eval::eval(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
