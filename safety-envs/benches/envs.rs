@@ -61,6 +61,28 @@ fn best_of(reps: usize, mut f: impl FnMut()) -> f64 {
         .fold(f64::INFINITY, f64::min)
 }
 
+/// User + system CPU seconds of this process, all threads (Linux
+/// `/proc/self/stat`, in clock ticks of 1/100 s); 0 where unavailable.
+fn process_cpu_seconds() -> f64 {
+    let Ok(stat) = std::fs::read_to_string("/proc/self/stat") else {
+        return 0.0;
+    };
+    // Fields after the parenthesised command name; utime and stime are the
+    // 14th and 15th fields of the whole line.
+    let rest = stat.rsplit_once(')').map_or("", |(_, r)| r);
+    let f: Vec<&str> = rest.split_whitespace().collect();
+    let ticks = |i: usize| f.get(i).and_then(|v| v.parse::<f64>().ok()).unwrap_or(0.0);
+    (ticks(11) + ticks(12)) / 100.0
+}
+
+/// The 1-minute load average (Linux), to judge how quiet the machine was.
+fn load_average() -> String {
+    std::fs::read_to_string("/proc/loadavg")
+        .ok()
+        .and_then(|s| s.split_whitespace().next().map(str::to_owned))
+        .unwrap_or_else(|| "?".into())
+}
+
 struct Row {
     what: String,
     value: String,
@@ -250,20 +272,31 @@ fn vec_scaling(name: EnvName, n_envs: usize, steps: usize, rows: &mut Vec<Row>) 
         })
     };
     let (mut v1, mut v2) = (make(1), make(2));
-    // Interleave so a burst of load elsewhere hits both.
+    // Interleave so a burst of load elsewhere hits both; also record the CPU
+    // time the process spent, which tells whether the work split well even
+    // when the other core was busy with someone else's job.
     let (mut t1, mut t2) = (f64::INFINITY, f64::INFINITY);
+    let (mut cpu1, mut cpu2) = (0.0, 0.0);
     for _ in 0..2 {
+        let c = process_cpu_seconds();
         t1 = t1.min(run(&mut v1));
+        cpu1 += process_cpu_seconds() - c;
+        let c = process_cpu_seconds();
         t2 = t2.min(run(&mut v2));
+        cpu2 += process_cpu_seconds() - c;
     }
     let total = (steps * n_envs) as f64;
     let ratio = t1 / t2;
+    // 6 timed runs per thread count (2 rounds x best of 3).
+    let per_step = |cpu: f64| cpu / (6.0 * total) * 1e6;
     rows.push(row(
         format!("{name}: VecEnv {n_envs} envs, 2 threads vs 1"),
         format!(
-            "{:.0} vs {:.0} env steps/s = {ratio:.2}x",
+            "{:.0} vs {:.0} env steps/s = {ratio:.2}x (CPU per env step {:.2} vs {:.2} us)",
             total / t2,
-            total / t1
+            total / t1,
+            per_step(cpu2),
+            per_step(cpu1)
         ),
         ">= 1.8x",
         Some(ratio >= 1.8),
@@ -343,7 +376,8 @@ fn main() {
 
     let threads = std::thread::available_parallelism().map_or(0, |n| n.get());
     println!(
-        "\nEnvironment benchmark ({threads} hardware threads{}), {:.0} s\n",
+        "\nEnvironment benchmark ({threads} hardware threads, load average {} at the end{}), {:.0} s\n",
+        load_average(),
         if quick { ", QUICK run" } else { "" },
         started.elapsed().as_secs_f64()
     );
