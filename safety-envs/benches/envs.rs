@@ -352,7 +352,7 @@ fn main() {
     let started = Instant::now();
     if run("raw") {
         for robot in [Robot::Point, Robot::Car] {
-            mujoco_vs_raw(robot, 100_000 / scale, 5, &mut rows);
+            mujoco_vs_raw(robot, 20_000 / scale, 15, &mut rows);
         }
     }
     if run("reset") {
