@@ -1373,6 +1373,11 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
         last_ckpt = learner.save_checkpoint(&run)?;
     }
     bar.finish();
+    if opts.progress
+        && let Err(e) = plot_learning_curve(&run.path, 10)
+    {
+        eprintln!("warning: {e}");
+    }
     Ok(PretrainReport {
         run_dir: run.path.clone(),
         last_checkpoint: last_ckpt,
@@ -1732,6 +1737,118 @@ pub fn pretrain_command(
         progress: true,
     };
     train(&opts)
+}
+
+/// Draws the learning curves of a run from its `metrics.jsonl` into
+/// `<run>/learning_curve.png`: episodic return (all episodes, first and last
+/// episode of each trajectory), episodic cost (same three) and lambda against
+/// environment steps, each a moving average over `window` records. Text uses
+/// DejaVu Sans (or the `.ttf` named by `ICRL_FONT`).
+pub fn plot_learning_curve(run_dir: &Path, window: usize) -> Result<PathBuf, EppoError> {
+    use plotters::prelude::*;
+    let path = run_dir.join("metrics.jsonl");
+    let text = std::fs::read_to_string(&path).map_err(|e| CheckpointError::Io {
+        path: path.clone(),
+        source: e,
+    })?;
+    let records: Vec<serde_json::Value> = text
+        .lines()
+        .filter_map(|l| serde_json::from_str(l).ok())
+        .collect();
+    let smooth = |key: &str| -> Vec<(f64, f64)> {
+        let xs: Vec<(f64, f64)> = records
+            .iter()
+            .filter_map(|r| Some((r.get("env_steps")?.as_f64()?, r.get(key)?.as_f64()?)))
+            .collect();
+        (0..xs.len())
+            .map(|i| {
+                let win = &xs[i.saturating_sub(window.max(1) - 1)..=i];
+                (
+                    xs[i].0,
+                    win.iter().map(|p| p.1).sum::<f64>() / win.len() as f64,
+                )
+            })
+            .collect()
+    };
+    let font_path = std::env::var("ICRL_FONT")
+        .unwrap_or_else(|_| "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf".into());
+    let font_err = |e: String| EppoError::Config(format!("learning curve: font {font_path}: {e}"));
+    let bytes = std::fs::read(&font_path).map_err(|e| font_err(e.to_string()))?;
+    // plotters keeps a 'static reference: the font lives for the process.
+    let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
+    plotters::style::register_font("sans-serif", FontStyle::Normal, bytes)
+        .map_err(|_| font_err("not a TrueType font".into()))?;
+    let out = run_dir.join("learning_curve.png");
+    let draw_err = |e: String| EppoError::Config(format!("learning curve {}: {e}", out.display()));
+    let colours = [
+        RGBColor(31, 119, 180),
+        RGBColor(255, 127, 14),
+        RGBColor(44, 160, 44),
+    ];
+    let panels: [(&str, &str, Vec<(&str, &str)>); 3] = [
+        (
+            "return (training tasks)",
+            "episode return",
+            vec![
+                ("episodic_return", "all episodes"),
+                ("first_episode_return", "first episode"),
+                ("last_episode_return", "last episode"),
+            ],
+        ),
+        (
+            "cost (training tasks)",
+            "episode cost",
+            vec![
+                ("episodic_cost", "all episodes"),
+                ("first_episode_cost", "first episode"),
+                ("last_episode_cost", "last episode"),
+            ],
+        ),
+        ("Lagrange multiplier", "lambda", vec![("lambda", "lambda")]),
+    ];
+    let root = BitMapBackend::new(&out, (1500, 450)).into_drawing_area();
+    root.fill(&WHITE).map_err(|e| draw_err(e.to_string()))?;
+    for ((title, y_label, keys), area) in panels.iter().zip(root.split_evenly((1, 3))) {
+        let curves: Vec<(&str, Vec<(f64, f64)>)> =
+            keys.iter().map(|(k, l)| (*l, smooth(k))).collect();
+        let all = curves.iter().flat_map(|c| c.1.iter());
+        let (x_max, y_min, y_max) = all.fold((1.0f64, 0.0f64, 1e-3f64), |(a, b, c), p| {
+            (a.max(p.0), b.min(p.1), c.max(p.1))
+        });
+        let mut chart = ChartBuilder::on(&area)
+            .caption(*title, ("sans-serif", 20))
+            .margin(12)
+            .x_label_area_size(40)
+            .y_label_area_size(50)
+            .build_cartesian_2d(0.0..x_max, y_min..y_max * 1.05)
+            .map_err(|e| draw_err(e.to_string()))?;
+        chart
+            .configure_mesh()
+            .x_desc("environment steps")
+            .y_desc(*y_label)
+            .x_labels(5)
+            .draw()
+            .map_err(|e| draw_err(e.to_string()))?;
+        for (i, (label, points)) in curves.into_iter().enumerate() {
+            let c = colours[i % colours.len()];
+            chart
+                .draw_series(LineSeries::new(points, c.stroke_width(2)))
+                .map_err(|e| draw_err(e.to_string()))?
+                .label(label)
+                .legend(move |(x, y)| {
+                    PathElement::new(vec![(x, y), (x + 18, y)], c.stroke_width(2))
+                });
+        }
+        chart
+            .configure_series_labels()
+            .background_style(WHITE.mix(0.8))
+            .border_style(BLACK)
+            .draw()
+            .map_err(|e| draw_err(e.to_string()))?;
+    }
+    root.present().map_err(|e| draw_err(e.to_string()))?;
+    drop(root);
+    Ok(out)
 }
 
 #[cfg(test)]

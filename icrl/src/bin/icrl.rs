@@ -24,6 +24,14 @@ struct Cli {
 enum Command {
     /// Pretrain an in-context agent (EPPO: Algorithm 1 of the paper).
     Pretrain(PretrainArgs),
+    /// Draw a run's learning curves (return, cost, lambda) into <RUN>/learning_curve.png.
+    PlotTraining {
+        /// The run folder.
+        run: PathBuf,
+        /// Moving-average window, in metric records.
+        #[arg(long, default_value_t = 10)]
+        window: usize,
+    },
     /// Evaluate checkpoints in context on held-out edge-oriented tasks: JSON, CSV, figures.
     Eval(icrl_eval::EvalArgs),
 }
@@ -86,6 +94,9 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Pretrain(args) => pretrain(args),
+        Command::PlotTraining { run, window } => icrl::eppo::plot_learning_curve(&run, window)
+            .map(|f| println!("wrote {}", f.display()))
+            .map_err(Into::into),
         Command::Eval(args) => icrl_eval::eval(args),
     };
     match result {

@@ -1,0 +1,213 @@
+//! Model / EPPO benchmarks (harness = false): `cargo bench -p icrl --bench model`.
+//!
+//! 1. Acting one step with the KV cache against recomputing the full context
+//!    at length 1500 (Table 1 transformer, 12 trajectories): goal >= 20x.
+//! 2. Trajectories collected per second (SafeDarkRoom, quick and Table 1 presets).
+//! 3. One EPPO update at Table 1 size (batch 32 x 1500 steps) against the same
+//!    model and update in PyTorch eager (`icrl/benches/eppo_update_torch.py`,
+//!    run with `$ICRL_TORCH_PYTHON`, default `python3`): goal <= 0.8x.
+//!
+//! `ICRL_BENCH_THREADS` (default 2) sets the libtorch threads of both sides.
+
+use std::process::Command;
+use std::time::Instant;
+
+use icrl::eppo::{EppoConfig, Learner, Trajectory};
+use icrl::model::Transformer;
+use icrl::presets::{apply_overrides, preset_table, resolve};
+use rand::{Rng, SeedableRng};
+use safety_envs::{EnvName, EnvOptions, VecEnv, make_env};
+use tch::{Device, Kind, Tensor, nn};
+
+fn median(mut xs: Vec<f64>) -> f64 {
+    xs.sort_by(f64::total_cmp);
+    xs[xs.len() / 2]
+}
+
+fn timed(reps: usize, mut f: impl FnMut()) -> f64 {
+    f(); // warm-up
+    median(
+        (0..reps)
+            .map(|_| {
+                let t = Instant::now();
+                f();
+                t.elapsed().as_secs_f64()
+            })
+            .collect(),
+    )
+}
+
+fn config(preset: &str, sets: &[&str]) -> EppoConfig {
+    let mut table = preset_table("eppo", "darkroom", preset).expect("built-in preset");
+    let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+    apply_overrides(&mut table, &sets).expect("valid overrides");
+    resolve(preset, table).expect("valid preset")
+}
+
+fn kv_cache_vs_full(cfg: &EppoConfig) -> (f64, f64) {
+    let vs = nn::VarStore::new(Device::Cpu);
+    let model = Transformer::new(vs.root(), &cfg.model).expect("valid model");
+    let (b, l) = (12, cfg.model.max_len);
+    let x = Tensor::randn([b, l, cfg.model.d_model], (Kind::Float, Device::Cpu));
+    let full = tch::no_grad(|| timed(3, || drop(model.forward_t(&x, false).expect("forward"))));
+    // Prefill 1400 positions, then time the last 100 steps one at a time.
+    let prefix = l - 100;
+    let steps = tch::no_grad(|| {
+        let mut total = vec![];
+        for _ in 0..3 {
+            let mut cache = model.new_cache();
+            drop(
+                model
+                    .forward_step(&x.narrow(1, 0, prefix), &mut cache)
+                    .expect("prefill"),
+            );
+            let t = Instant::now();
+            for i in prefix..l {
+                drop(
+                    model
+                        .forward_step(&x.narrow(1, i, 1), &mut cache)
+                        .expect("step"),
+                );
+            }
+            total.push(t.elapsed().as_secs_f64() / 100.0);
+        }
+        median(total)
+    });
+    (full, steps)
+}
+
+fn collection(cfg: EppoConfig, rounds: usize) -> (f64, f64) {
+    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).expect("learner");
+    let envs = (0..cfg.n_envs)
+        .map(|_| {
+            make_env(
+                EnvName::DarkRoom,
+                &EnvOptions {
+                    max_episode_steps: Some(cfg.max_episode_steps),
+                },
+            )
+            .expect("env")
+        })
+        .collect();
+    let mut venv = VecEnv::new(envs, cfg.env_threads, true).expect("vec env");
+    let t = Instant::now();
+    let (mut trajs, mut steps) = (0, 0);
+    for _ in 0..rounds {
+        let r = learner.collect(&mut venv).expect("collect");
+        trajs += r.trajectories;
+        steps += r.steps;
+    }
+    let s = t.elapsed().as_secs_f64();
+    (trajs as f64 / s, steps as f64 / s)
+}
+
+/// A 50-episode x 30-step trajectory of random data (Table 1 shape).
+fn synthetic(rng: &mut rand_chacha::ChaCha8Rng) -> Trajectory {
+    let (k, t_max, n_act) = (50, 30, 5);
+    let n = k * t_max;
+    let mut t = Trajectory {
+        budget: rng.gen_range(1.0..15.0),
+        ..Default::default()
+    };
+    for s in 0..n {
+        t.obs
+            .extend([rng.gen_range(0..9) as f32, rng.gen_range(0..9) as f32]);
+        let a = rng.gen_range(0..n_act);
+        t.actions
+            .extend((0..n_act).map(|j| if j == a { 1.0 } else { 0.0 }));
+        t.action_idx.push(a as i64);
+        let last = s % t_max == t_max - 1;
+        t.rewards.push(0.0);
+        t.costs.push(if rng.gen_bool(0.2) { 1.0 } else { 0.0 });
+        t.ctg.push(t.budget);
+        t.start.push(s % t_max == 0);
+        t.terminated.push(false);
+        t.truncated.push(last);
+        t.episode.push((s / t_max) as u32);
+        if last {
+            t.episode_returns.push(0.0);
+            t.episode_costs
+                .push(t.costs[s + 1 - t_max..=s].iter().sum());
+        }
+    }
+    t
+}
+
+fn main() {
+    let threads: i32 = std::env::var("ICRL_BENCH_THREADS")
+        .ok()
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(2);
+    tch::set_num_threads(threads);
+    let table1 = config("table1", &[]);
+    println!("# Model / EPPO benchmarks ({threads} libtorch threads)\n");
+
+    let (full, step) = kv_cache_vs_full(&table1);
+    println!("| measure | value | goal |\n|---|---|---|");
+    println!(
+        "| full forward, 12 x 1500 steps (Table 1 transformer) | {:.1} ms | |\n| one KV-cached step at position 1400..1500 | {:.2} ms | |\n| speed-up of cached acting | {:.1}x | >= 20x |",
+        full * 1e3,
+        step * 1e3,
+        full / step
+    );
+
+    let (tps, sps) = collection(config("quick", &[]), 3);
+    println!(
+        "| trajectories/s, quick preset (8 envs, K 8, t_max 30) | {tps:.2} ({sps:.0} env steps/s) | |"
+    );
+    let (tps, sps) = collection(config("table1", &[]), 1);
+    println!(
+        "| trajectories/s, Table 1 preset (12 envs, K 50, t_max 30) | {tps:.2} ({sps:.0} env steps/s) | |"
+    );
+
+    let mut learner = Learner::new(table1.clone(), EnvName::DarkRoom).expect("learner");
+    let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
+    for _ in 0..table1.batch_size {
+        learner.replay.push(synthetic(&mut rng));
+    }
+    let rust = timed(3, || {
+        learner.update().expect("update");
+    });
+    println!("| one EPPO update, batch 32 x 1500 (tch) | {rust:.2} s | |");
+    let python = std::env::var("ICRL_TORCH_PYTHON").unwrap_or_else(|_| "python3".into());
+    let script = concat!(env!("CARGO_MANIFEST_DIR"), "/benches/eppo_update_torch.py");
+    let out = Command::new(&python)
+        .args([
+            script,
+            "--batch",
+            "32",
+            "--seq",
+            "1500",
+            "--reps",
+            "3",
+            "--threads",
+            &threads.to_string(),
+        ])
+        .output();
+    match out {
+        Ok(o) if o.status.success() => {
+            let text = String::from_utf8_lossy(&o.stdout);
+            let torch = text.lines().find_map(|l| {
+                l.strip_prefix("torch_update_seconds ")?
+                    .trim()
+                    .parse::<f64>()
+                    .ok()
+            });
+            match torch {
+                Some(torch) => println!(
+                    "| the same update, PyTorch eager | {torch:.2} s | |\n| tch / PyTorch time | {:.2}x | <= 0.8x |",
+                    rust / torch
+                ),
+                None => println!("| PyTorch eager | unparsable output: {text} | |"),
+            }
+        }
+        Ok(o) => println!(
+            "| PyTorch eager | not run: `{python}` failed ({}); set ICRL_TORCH_PYTHON to a Python with torch 2.11 | |",
+            String::from_utf8_lossy(&o.stderr)
+                .lines()
+                .last()
+                .unwrap_or("")
+        ),
+        Err(e) => println!("| PyTorch eager | not run: cannot start `{python}` ({e}) | |"),
+    }
+}
