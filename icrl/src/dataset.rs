@@ -39,6 +39,8 @@ pub enum DatasetError {
     Env(#[from] EnvError),
     #[error(transparent)]
     Ppo(#[from] PpoLagError),
+    #[error(transparent)]
+    History(#[from] crate::histories::HistoryError),
 }
 
 /// Which learner makes the histories.
@@ -244,6 +246,98 @@ pub fn generate(
             histories,
         },
         metrics,
+    })
+}
+
+/// The `dataset` command's options (see `icrl dataset --help`).
+#[derive(Clone, Debug)]
+pub struct DatasetCommand {
+    pub env: String,
+    pub out: std::path::PathBuf,
+    pub tasks: usize,
+    pub steps: usize,
+    /// `None`: the paper's limits for the environment.
+    pub cost_limits: Option<Vec<f32>>,
+    pub seed: u64,
+    pub threads: usize,
+    pub source: Source,
+}
+
+/// What the `dataset` command made.
+#[derive(Clone, Debug)]
+pub struct DatasetReport {
+    pub out: std::path::PathBuf,
+    pub histories: usize,
+    pub steps: usize,
+    pub episodes: usize,
+    pub seconds: f64,
+    pub bytes: u64,
+    /// Mean episode return and cost over the first and the last 10% of
+    /// episodes of every history: how much the histories improve.
+    pub early: (f64, f64),
+    pub late: (f64, f64),
+}
+
+/// Runs the `dataset` command: generates with a progress bar, writes the HDF5
+/// file (atomically), and summarises it.
+pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetError> {
+    let env: EnvName = cmd.env.parse()?;
+    let mut cfg = DatasetConfig::paper(env, cmd.tasks, cmd.seed);
+    cfg.steps = cmd.steps;
+    cfg.threads = cmd.threads;
+    cfg.source = cmd.source;
+    if let Some(c) = &cmd.cost_limits {
+        cfg.cost_limits = c.clone();
+    }
+    cfg.validate()?;
+    let total = (cfg.tasks * cfg.cost_limits.len() * cfg.steps) as u64;
+    let bar = indicatif::ProgressBar::new(total);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{prefix} [{elapsed_precise}] {wide_bar} {pos}/{len} steps ({per_sec}, eta {eta})",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    bar.set_prefix(format!(
+        "{} {}",
+        cmd.env,
+        match cmd.source {
+            Source::PpoLagrangian => "ppo-lagrangian",
+            Source::NoisyOptimal => "noisy-optimal",
+        }
+    ));
+    let started = std::time::Instant::now();
+    let data = generate(&cfg, &|n| bar.inc(n as u64))?;
+    bar.finish();
+    crate::histories::write_histories(&cmd.out, &data.file)?;
+    let seconds = started.elapsed().as_secs_f64();
+    let bytes = std::fs::metadata(&cmd.out).map_or(0, |m| m.len());
+    let (mut early, mut late, mut ne, mut nl) = ((0.0, 0.0), (0.0, 0.0), 0.0, 0.0);
+    let mut episodes = 0;
+    for h in &data.file.histories {
+        let totals = h.episode_totals();
+        episodes += totals.len();
+        let k = (totals.len() / 10).max(1);
+        for &(r, c) in &totals[..k.min(totals.len())] {
+            early.0 += r as f64;
+            early.1 += c as f64;
+            ne += 1.0;
+        }
+        for &(r, c) in &totals[totals.len().saturating_sub(k)..] {
+            late.0 += r as f64;
+            late.1 += c as f64;
+            nl += 1.0;
+        }
+    }
+    Ok(DatasetReport {
+        out: cmd.out.clone(),
+        histories: data.file.histories.len(),
+        steps: data.file.total_steps(),
+        episodes,
+        seconds,
+        bytes,
+        early: (early.0 / ne, early.1 / ne),
+        late: (late.0 / nl, late.1 / nl),
     })
 }
 
@@ -542,7 +636,9 @@ mod tests {
         let d = generate(&cfg, &|_| {}).unwrap();
         assert_eq!(d.file.histories.len(), 2);
         assert_eq!(d.metrics.len(), 2);
-        assert!(d.metrics[0].len() == 2 && !d.file.histories[1].is_empty());
+        let per_update = cfg.ppo.num_envs * cfg.ppo.rollout_steps;
+        assert_eq!(d.metrics[0].len(), 1024usize.div_ceil(per_update));
+        assert!(!d.file.histories[1].is_empty());
         let json: serde_json::Value = serde_json::from_str(&d.file.info.config).unwrap();
         assert_eq!(json["dataset"]["steps"], 1024);
     }

@@ -91,12 +91,15 @@ pub struct PpoLagConfig {
 }
 
 impl PpoLagConfig {
-    /// SafeDarkRoom: 50k steps, short rollouts so a run has many updates.
+    /// SafeDarkRoom: 50k steps, short rollouts so a run has about 200 updates.
+    /// The multiplier's learning rate is above OmniSafe's 0.035 because it
+    /// steps once per update, and a run has few updates; the entropy bonus
+    /// keeps some exploration for the detours a zero cost limit needs.
     pub fn darkroom() -> Self {
         PpoLagConfig {
             total_steps: 50_000,
             num_envs: 4,
-            rollout_steps: 128,
+            rollout_steps: 64,
             hidden: 64,
             learning_rate: 1e-3,
             anneal_lr: true,
@@ -106,12 +109,12 @@ impl PpoLagConfig {
             update_epochs: 4,
             minibatches: 4,
             clip_coef: 0.2,
-            ent_coef: 0.01,
+            ent_coef: 0.02,
             vf_coef: 0.5,
             max_grad_norm: 0.5,
             normalize_obs: true,
             lagrange_init: 0.001,
-            lagrange_lr: 0.035,
+            lagrange_lr: 0.1,
             lagrange_max: 100.0,
             init_log_std: -0.5,
         }

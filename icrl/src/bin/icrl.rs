@@ -32,8 +32,74 @@ enum Command {
         #[arg(long, default_value_t = 10)]
         window: usize,
     },
+    /// Make learning histories (PPO-Lagrangian or AD-eps) for supervised pretraining, as HDF5.
+    Dataset(DatasetArgs),
     /// Evaluate checkpoints in context on held-out edge-oriented tasks: JSON, CSV, figures.
     Eval(icrl_eval::EvalArgs),
+}
+
+#[derive(Debug, Args)]
+struct DatasetArgs {
+    /// Environment.
+    #[arg(long, value_parser = ["darkroom", "point", "car"])]
+    env: String,
+    /// Output HDF5 file (written to `<out>.tmp`, then renamed).
+    #[arg(long)]
+    out: PathBuf,
+    /// Pretraining tasks (centre-oriented).
+    #[arg(long, default_value_t = 10)]
+    tasks: usize,
+    /// Environment steps per history (paper: 50000).
+    #[arg(long, default_value_t = 50_000)]
+    steps: usize,
+    /// Cost limits, one history per task and limit (default: 0,2.5,5 SafeDarkRoom; 0,5,10 Point and Car).
+    #[arg(long, value_delimiter = ',')]
+    cost_limits: Option<Vec<f32>>,
+    /// Master seed.
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    /// Worker threads (default: all cores).
+    #[arg(long)]
+    threads: Option<usize>,
+    /// Which learner makes the histories.
+    #[arg(long, default_value = "ppo-lagrangian", value_parser = ["ppo-lagrangian", "noisy-optimal"])]
+    source: String,
+}
+
+fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
+    let source = match args.source.as_str() {
+        "noisy-optimal" => icrl::dataset::Source::NoisyOptimal,
+        _ => icrl::dataset::Source::PpoLagrangian,
+    };
+    let threads = args
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let r = icrl::dataset::dataset_command(&icrl::dataset::DatasetCommand {
+        env: args.env,
+        out: args.out,
+        tasks: args.tasks,
+        steps: args.steps,
+        cost_limits: args.cost_limits,
+        seed: args.seed,
+        threads,
+        source,
+    })?;
+    println!(
+        "wrote {}: {} histories, {} steps, {} episodes, {:.1} MB in {:.0} s ({:.0} steps/s); \
+         first 10% of episodes: return {:.3} cost {:.3}; last 10%: return {:.3} cost {:.3}",
+        r.out.display(),
+        r.histories,
+        r.steps,
+        r.episodes,
+        r.bytes as f64 / 1e6,
+        r.seconds,
+        r.steps as f64 / r.seconds,
+        r.early.0,
+        r.early.1,
+        r.late.0,
+        r.late.1
+    );
+    Ok(())
 }
 
 #[derive(Debug, Args)]
@@ -97,6 +163,7 @@ fn main() -> ExitCode {
         Command::PlotTraining { run, window } => icrl::eppo::plot_learning_curve(&run, window)
             .map(|f| println!("wrote {}", f.display()))
             .map_err(Into::into),
+        Command::Dataset(args) => dataset(args),
         Command::Eval(args) => icrl_eval::eval(args),
     };
     match result {
