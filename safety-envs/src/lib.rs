@@ -1,7 +1,7 @@
 //! Constrained navigation environments over a safe MuJoCo wrapper.
 //!
 //! - [`mujoco`]: safe `Model`, `Data`, engine-error hook, warnings, off-screen renderer.
-//! - [`env`]: the one CMDP interface ([`CmdpEnv`]).
+//! - [`env`](mod@env): the one CMDP interface ([`CmdpEnv`]).
 //! - [`spawn`]: centre- and edge-oriented task sampling.
 //! - [`darkroom`]: SafeDarkRoom, the 9x9 grid world.
 //! - [`nav`]: SafeDarkMujoco Point and Car, the MuJoCo goal tasks.
