@@ -27,12 +27,22 @@ pub fn test(args: &[String]) -> Result<ExitCode> {
     }
 }
 
-/// `cargo xtask pretrain|dataset|eval`: `icrl <subcommand> ARGS` in release.
+/// The main job, run by `cargo xtask pretrain` without arguments.
+const DEFAULT_PRETRAIN: [&str; 2] = ["--env", "car"];
+
+/// `cargo xtask pretrain|dataset|eval`: `icrl <subcommand> ARGS` in release;
+/// `pretrain` without arguments runs the main job ([`DEFAULT_PRETRAIN`]).
 pub fn icrl(subcommand: &str, args: &[String]) -> Result<ExitCode> {
     setup()?;
     if !has_bin(repo_root(), "icrl", "icrl") {
         return not_built_yet(subcommand, "icrl/src/bin/icrl.rs");
     }
+    let default: Vec<String> = DEFAULT_PRETRAIN.map(String::from).to_vec();
+    let args = if subcommand == "pretrain" && args.is_empty() {
+        &default
+    } else {
+        args
+    };
     let leading = [
         "run",
         "--release",
@@ -111,15 +121,15 @@ fn not_built_yet(command: &str, source: &str) -> Result<ExitCode> {
     Ok(ExitCode::SUCCESS)
 }
 
-/// Runs the cargo that runs us (or `cargo` from PATH) in the repository root
-/// with `leading` then `args`, and returns its exit code.
+/// Runs the cargo that runs us (or `cargo` from PATH) with `leading` then
+/// `args`, and returns its exit code. It runs in the caller's folder, so
+/// relative paths in `args` (`--out`, `--scene`) mean what the user typed.
 fn cargo(leading: &[&str], args: &[String]) -> Result<ExitCode> {
     let cargo = env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
     println!("xtask: cargo {}", shell_words(leading, args));
     let status = Command::new(&cargo)
         .args(leading)
         .args(args)
-        .current_dir(repo_root())
         .status()
         .with_context(|| format!("could not start {}", Path::new(&cargo).display()))?;
     Ok(exit_code(status))
