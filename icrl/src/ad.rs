@@ -39,9 +39,9 @@
 //! A run folder `{env}__ad__{seed}__{time}` holds `config.toml` (the resolved
 //! [`AdConfig`]), `spec.json` ([`AdSpec`]: sizes, normalisation, dataset,
 //! pretraining tasks), `metrics.jsonl` (one [`AdMetrics`] per log interval),
-//! `model.safetensors` and `state.json` (updates done). Resuming loads the
-//! weights and the update counter; Adam's moments restart from zero (tch
-//! cannot save optimizer state), which the resumed run's log records.
+//! `model.safetensors`, `adam.safetensors` (the optimizer's moments, through
+//! the shared [`crate::optim::Adam`]) and `state.json` (updates done).
+//! Resuming loads all three and continues the schedule where it stopped.
 
 use std::fs;
 use std::io::Write;
@@ -52,12 +52,13 @@ use rand::distributions::{Distribution, WeightedIndex};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use serde::{Deserialize, Serialize};
-use tch::{Device, Kind, Tensor, nn, nn::Module, nn::OptimizerConfig};
+use tch::{Device, Kind, Tensor, nn, nn::Module};
 use thiserror::Error;
 
 use crate::agent::{Actions, AgentError, Conditioning, InContextAgent, StepInput};
 use crate::histories::{History, HistoryError, HistoryFile};
 use crate::model::{self, KvCache, ModelError, Transformer};
+use crate::optim::{Adam, AdamConfig};
 use crate::task_seeds::PretrainTasks;
 
 /// Everything supervised pretraining can fail with.
@@ -121,21 +122,44 @@ pub struct AdConfig {
     pub seed: u64,
 }
 
-/// The presets shipped in `icrl/presets/ad-*.toml`.
+/// The presets shipped in `icrl/presets/ad-{env}-{preset}.toml`: `table2` is
+/// the paper's Table 2 (a GPU preset), `quick` fits 2 CPU cores.
 pub const PRESETS: [(&str, &str); 6] = [
-    ("darkroom", include_str!("../presets/ad-darkroom.toml")),
-    ("point", include_str!("../presets/ad-point.toml")),
-    ("car", include_str!("../presets/ad-car.toml")),
     (
-        "darkroom-quick",
+        "ad-darkroom-table2",
+        include_str!("../presets/ad-darkroom-table2.toml"),
+    ),
+    (
+        "ad-point-table2",
+        include_str!("../presets/ad-point-table2.toml"),
+    ),
+    (
+        "ad-car-table2",
+        include_str!("../presets/ad-car-table2.toml"),
+    ),
+    (
+        "ad-darkroom-quick",
         include_str!("../presets/ad-darkroom-quick.toml"),
     ),
     (
-        "point-quick",
+        "ad-point-quick",
         include_str!("../presets/ad-point-quick.toml"),
     ),
-    ("car-quick", include_str!("../presets/ad-car-quick.toml")),
+    ("ad-car-quick", include_str!("../presets/ad-car-quick.toml")),
 ];
+
+/// The preset `ad-{env}-{preset}` as a TOML table.
+pub fn preset_table(env: &str, preset: &str) -> Result<toml::Table, AdError> {
+    let name = format!("ad-{env}-{preset}");
+    let (_, text) = PRESETS.iter().find(|(n, _)| *n == name).ok_or_else(|| {
+        AdError::Config(format!(
+            "no AD preset '{name}'; available: {}",
+            PRESETS.map(|p| p.0).join(", ")
+        ))
+    })?;
+    text.parse::<toml::Table>()
+        .map_err(|e| AdError::Config(format!("preset {name}: {e}")))
+}
 
 impl AdConfig {
     /// Parses a TOML config.
@@ -145,15 +169,22 @@ impl AdConfig {
         Ok(cfg)
     }
 
-    /// A shipped preset: `darkroom`, `point`, `car` (Table 2) or their `-quick` variants.
+    /// A shipped preset by `{env}-{preset}`: `darkroom-table2`, `car-quick`, ...
     pub fn preset(name: &str) -> Result<Self, AdError> {
-        let (_, text) = PRESETS.iter().find(|(n, _)| *n == name).ok_or_else(|| {
+        let (env, preset) = name.rsplit_once('-').ok_or_else(|| {
             AdError::Config(format!(
-                "unknown AD preset '{name}'; valid: {}",
-                PRESETS.map(|p| p.0).join(", ")
+                "AD preset name '{name}' is not {{env}}-{{preset}}, e.g. darkroom-quick"
             ))
         })?;
-        Self::from_toml(text)
+        Self::from_table(preset_table(env, preset)?)
+    }
+
+    /// A config from a (possibly overridden) TOML table.
+    pub fn from_table(table: toml::Table) -> Result<Self, AdError> {
+        let cfg = crate::presets::resolve::<AdConfig>("ad", table)
+            .map_err(|e| AdError::Config(e.to_string()))?;
+        cfg.validate()?;
+        Ok(cfg)
     }
 
     /// Checks the values, naming the ones that do not fit.
@@ -530,30 +561,6 @@ pub struct TrainSummary {
     pub resumed_from: usize,
 }
 
-/// `{env}__ad__{seed}__{YYYYmmddTHHMMSS}` (UTC).
-pub fn run_dir_name(env: &str, seed: u64) -> String {
-    let secs = std::time::SystemTime::now()
-        .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_secs());
-    let (days, rem) = (secs / 86_400, secs % 86_400);
-    // Civil date from days since 1970-01-01 (Howard Hinnant's algorithm).
-    let z = days as i64 + 719_468;
-    let era = z.div_euclid(146_097);
-    let doe = z - era * 146_097;
-    let yoe = (doe - doe / 1460 + doe / 36_524 - doe / 146_096) / 365;
-    let doy = doe - (365 * yoe + yoe / 4 - yoe / 100);
-    let mp = (5 * doy + 2) / 153;
-    let day = doy - (153 * mp + 2) / 5 + 1;
-    let month = if mp < 10 { mp + 3 } else { mp - 9 };
-    let year = yoe + era * 400 + i64::from(month <= 2);
-    format!(
-        "{env}__ad__{seed}__{year:04}{month:02}{day:02}T{:02}{:02}{:02}",
-        rem / 3600,
-        rem % 3600 / 60,
-        rem % 60
-    )
-}
-
 /// The spec of a model trained on `data`.
 fn spec_for(data: &HistoryFile, dataset_path: &Path) -> AdSpec {
     let info = &data.info;
@@ -613,12 +620,23 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), AdError> {
     fs::rename(&tmp, path).map_err(|e| io_err(path, e))
 }
 
-fn save_checkpoint(dir: &Path, vs: &nn::VarStore, state: &TrainState) -> Result<(), AdError> {
+/// Writes weights, Adam's moments, then `state.json` (last, so it never names
+/// an update whose weights are not on disk).
+fn save_checkpoint(
+    dir: &Path,
+    vs: &nn::VarStore,
+    opt: &Adam,
+    state: &TrainState,
+) -> Result<(), AdError> {
     let model = dir.join("model.safetensors");
     // tch picks the format from the extension: keep `.safetensors` last.
     let tmp = dir.join("model.tmp.safetensors");
     vs.save(&tmp)?;
     fs::rename(&tmp, &model).map_err(|e| io_err(&model, e))?;
+    let adam = dir.join("adam.safetensors");
+    let tmp = dir.join("adam.tmp.safetensors");
+    opt.save(&tmp)?;
+    fs::rename(&tmp, &adam).map_err(|e| io_err(&adam, e))?;
     let json = serde_json::to_vec_pretty(state).map_err(|e| io_err(dir, e))?;
     write_atomic(&dir.join("state.json"), &json)
 }
@@ -685,14 +703,20 @@ pub fn train(
     // Skip the sampling stream forward so a resumed run does not replay windows.
     rng.set_word_pos((resumed_from as u128) << 16);
 
-    let mut opt = nn::Adam {
-        beta1: cfg.beta1,
-        beta2: cfg.beta2,
-        wd: 0.0,
-        eps: 1e-8,
-        amsgrad: false,
+    let mut opt = Adam::new(
+        &vs,
+        AdamConfig {
+            lr: cfg.learning_rate,
+            beta1: cfg.beta1,
+            beta2: cfg.beta2,
+            eps: 1e-8,
+            grad_clip: Some(cfg.grad_clip),
+        },
+    );
+    if resumed_from > 0 {
+        let p = dir.join("adam.safetensors");
+        opt.load(&p).map_err(|e| io_err(&p, e))?;
     }
-    .build(&vs, cfg.learning_rate)?;
 
     // Fixed validation windows.
     let device = vs.device();
@@ -721,7 +745,7 @@ pub fn train(
         let (x, y) = train_set.sample(cfg.batch_size, window, &mut rng)?;
         let out = model.forward_t(&x.to_device(device), true)?;
         let (l, acc) = loss(&out, &y.to_device(device), spec.discrete);
-        opt.backward_step_clip_norm(&l, cfg.grad_clip);
+        opt.backward_step(&l);
         loss_sum += l.double_value(&[]);
         acc_sum += acc.map_or(0.0, |a| a.double_value(&[]));
         n_sum += 1.0;
@@ -767,7 +791,7 @@ pub fn train(
             (loss_sum, acc_sum, n_sum) = (0.0, 0.0, 0.0);
         }
         if state.update.is_multiple_of(cfg.checkpoint_every) || done {
-            save_checkpoint(dir, &vs, &state)?;
+            save_checkpoint(dir, &vs, &opt, &state)?;
         }
     }
     Ok(TrainSummary {
@@ -777,6 +801,96 @@ pub fn train(
         last,
         resumed_from,
     })
+}
+
+/// The `pretrain --method ad` command: a preset (or a resumed run's config)
+/// with `--set` overrides, the dataset, a progress bar; returns the summary.
+/// Without a terminal the bar is hidden and each metrics line goes to stderr.
+pub fn pretrain_command(
+    env: &str,
+    preset: &str,
+    dataset: Option<&Path>,
+    resume: Option<&Path>,
+    sets: &[String],
+    out: &Path,
+) -> Result<TrainSummary, AdError> {
+    let mut table = match resume {
+        Some(dir) => {
+            let p = dir.join("config.toml");
+            let text = fs::read_to_string(&p).map_err(|e| io_err(&p, e))?;
+            text.parse::<toml::Table>().map_err(|e| io_err(&p, e))?
+        }
+        None => preset_table(env, preset)?,
+    };
+    crate::presets::apply_overrides(&mut table, sets)
+        .map_err(|e| AdError::Config(e.to_string()))?;
+    let cfg = AdConfig::from_table(table)?;
+    let dataset_path = match (dataset, resume) {
+        (Some(p), _) => p.to_path_buf(),
+        (None, Some(dir)) => {
+            let p = dir.join("spec.json");
+            let text = fs::read_to_string(&p).map_err(|e| io_err(&p, e))?;
+            let spec: AdSpec = serde_json::from_str(&text).map_err(|e| io_err(&p, e))?;
+            PathBuf::from(spec.dataset)
+        }
+        (None, None) => {
+            return Err(AdError::Config(
+                "--method ad needs --dataset FILE (make one with `icrl dataset --env ...`)".into(),
+            ));
+        }
+    };
+    let data = crate::histories::read_histories(&dataset_path, Some(env))?;
+    let run_dir = match resume {
+        Some(dir) => dir.to_path_buf(),
+        None => {
+            let run = crate::checkpoint::RunDir::create(out, env, "ad", cfg.seed)
+                .map_err(|e| io_err(out, e))?;
+            // AD keeps its checkpoint files at the top of the run folder.
+            let _ = fs::remove_dir(run.path.join("checkpoints"));
+            run.path
+        }
+    };
+    let bar = indicatif::ProgressBar::new(cfg.updates as u64);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{prefix} [{elapsed_precise}] {wide_bar} {pos}/{len} updates ({per_sec}, eta {eta}) {msg}",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    bar.set_prefix(format!("ad {env}"));
+    let hidden = bar.is_hidden();
+    let req = TrainRequest {
+        cfg: &cfg,
+        data: &data,
+        dataset_path: &dataset_path,
+        run_dir: &run_dir,
+        resume: resume.is_some(),
+    };
+    let fmt = |m: &AdMetrics| {
+        format!(
+            "update {} loss {:.4} acc {} val_loss {} val_acc {} lr {:.2e} {:.0}s",
+            m.update,
+            m.train_loss,
+            m.train_accuracy.map_or("-".into(), |a| format!("{a:.3}")),
+            m.val_loss.map_or("-".into(), |a| format!("{a:.4}")),
+            m.val_accuracy.map_or("-".into(), |a| format!("{a:.3}")),
+            m.learning_rate,
+            m.seconds
+        )
+    };
+    let summary = train(
+        &req,
+        &mut |m| {
+            if hidden {
+                eprintln!("{}", fmt(m));
+            } else {
+                bar.set_message(fmt(m));
+            }
+        },
+        &mut |u| bar.set_position(u as u64),
+    )?;
+    bar.finish();
+    Ok(summary)
 }
 
 // ---------------------------------------------------------------------------
@@ -1013,7 +1127,7 @@ mod tests {
 
     #[test]
     fn presets_parse_and_match_table_2() {
-        let t2 = AdConfig::preset("darkroom").unwrap();
+        let t2 = AdConfig::preset("darkroom-table2").unwrap();
         assert_eq!(
             (
                 t2.model.d_model,
@@ -1033,15 +1147,15 @@ mod tests {
             ),
             (0.5, 0.1, 0.3)
         );
-        for (name, _) in PRESETS {
-            AdConfig::preset(name).unwrap();
+        for env in ["darkroom", "point", "car"] {
+            for p in ["table2", "quick"] {
+                AdConfig::preset(&format!("{env}-{p}")).unwrap();
+            }
         }
-        assert!(
-            AdConfig::preset("nope")
-                .unwrap_err()
-                .to_string()
-                .contains("darkroom-quick")
-        );
+        let e = AdConfig::preset("darkroom-table1")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("ad-darkroom-quick"), "{e}");
     }
 
     #[test]

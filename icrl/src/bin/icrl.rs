@@ -108,10 +108,14 @@ struct PretrainArgs {
     #[arg(long, value_parser = ["darkroom", "point", "car"])]
     env: String,
     /// Learner.
-    #[arg(long, default_value = "eppo", value_parser = ["eppo"])]
+    #[arg(long, default_value = "eppo", value_parser = ["eppo", "ad"])]
     method: String,
-    /// Preset: `table1` (the paper's settings, a GPU preset) or `quick` (2 CPU cores, about an hour).
-    #[arg(long, default_value = "quick", value_parser = ["table1", "quick"])]
+    /// Learning histories for `--method ad` (HDF5 from `icrl dataset`).
+    #[arg(long, value_name = "FILE")]
+    dataset: Option<PathBuf>,
+    /// Preset: `table1` (EPPO, the paper's Table 1, a GPU preset), `table2` (AD, the paper's Table 2,
+    /// a GPU preset) or `quick` (2 CPU cores, about an hour).
+    #[arg(long, default_value = "quick", value_parser = ["table1", "table2", "quick"])]
     preset: String,
     /// Device; overrides the preset's.
     #[arg(long, value_parser = ["cpu", "cuda"])]
@@ -130,7 +134,38 @@ struct PretrainArgs {
     out: PathBuf,
 }
 
+/// `pretrain --method ad`: safe supervised pretraining on a history file
+/// (libtorch's CUDA device when there is one, else the CPU).
+fn pretrain_ad(args: PretrainArgs) -> anyhow::Result<()> {
+    let mut sets = args.set;
+    if let Some(seed) = args.seed {
+        sets.push(format!("seed={seed}"));
+    }
+    let s = icrl::ad::pretrain_command(
+        &args.env,
+        &args.preset,
+        args.dataset.as_deref(),
+        args.resume.as_deref(),
+        &sets,
+        &args.out,
+    )?;
+    let last = s.last.as_ref();
+    println!(
+        "run {} finished: {} updates (resumed from {}); last train loss {}, val loss {}",
+        s.run_dir.display(),
+        s.updates,
+        s.resumed_from,
+        last.map_or("-".into(), |m| format!("{:.4}", m.train_loss)),
+        last.and_then(|m| m.val_loss)
+            .map_or("-".into(), |v| format!("{v:.4}"))
+    );
+    Ok(())
+}
+
 fn pretrain(args: PretrainArgs) -> anyhow::Result<()> {
+    if args.method == "ad" {
+        return pretrain_ad(args);
+    }
     let mut sets = args.set;
     if let Some(seed) = args.seed {
         sets.push(format!("seed={seed}"));
