@@ -640,9 +640,32 @@ fn render(
             plots::darkroom_animation(rec, task, budget, &|k| k < 3 || k + 2 >= k_n, path)?;
             Ok(())
         }
-        EnvName::Point | EnvName::Car => Err(EvalCmdError::Options(format!(
-            "--render is not available for {env} yet"
-        ))),
+        EnvName::Point | EnvName::Car => {
+            let robot = if env == EnvName::Point {
+                safety_envs::nav::Robot::Point
+            } else {
+                safety_envs::nav::Robot::Car
+            };
+            let nav = safety_envs::nav::NavConfig::new(robot);
+            let arena = plots::ArenaGeometry {
+                extent: nav.extent,
+                spacing: nav.spacing(),
+                goal_radius: nav.goal_radius,
+                hazard_radius: nav.hazard_radius,
+            };
+            let k_n = rec.episodes.len();
+            // Every 3rd step of the first two and the last episode.
+            plots::nav_animation(
+                rec,
+                task,
+                &arena,
+                budget,
+                &|k| k < 2 || k + 1 == k_n,
+                3,
+                path,
+            )?;
+            Ok(())
+        }
     }
 }
 

@@ -186,3 +186,207 @@ pub fn load_checkpoint(path: &Path, env: EnvName) -> Result<LoadedAgent, EvalCmd
         Method::Random => Err(bad(path, "a random policy has no checkpoint")),
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::ad::{AdConfig, TrainRequest};
+    use crate::dataset::{DatasetConfig, Source, generate};
+    use crate::eppo::{EppoConfig, PretrainOptions};
+    use crate::eval_cmd::{EvalOptions, run};
+    use std::path::PathBuf;
+
+    fn options(out: PathBuf) -> EvalOptions {
+        EvalOptions {
+            env: EnvName::DarkRoom,
+            tasks: 3,
+            episodes: None,
+            budgets: None,
+            n_budgets: 2,
+            rtg: 1.0,
+            sweep: false,
+            random: false,
+            render: false,
+            out,
+            eval_seed: 0,
+            batch: 64,
+            threads: 1,
+            greedy: false,
+            max_episode_steps: None,
+            progress: false,
+            command: "test".into(),
+        }
+    }
+
+    fn report(path: &Path) -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(path).unwrap()).unwrap()
+    }
+
+    #[test]
+    fn folders_that_are_not_checkpoints_are_named() {
+        let dir = std::env::temp_dir().join(format!("icrl-eval-load-empty-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let e = load_checkpoint(&dir, EnvName::DarkRoom)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            e.contains("not a checkpoint") && e.contains(&dir.display().to_string()),
+            "{e}"
+        );
+        let e = load_checkpoint(&dir.join("missing"), EnvName::DarkRoom)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("not a folder"), "{e}");
+        // A model sized for SafeDarkRoom does not fit Point.
+        let e = check_shape(&dir, EnvName::Point, 2, Some(5), 5)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("model shape does not fit point"), "{e}");
+        check_shape(&dir, EnvName::DarkRoom, 2, Some(5), 5).unwrap();
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn eppo_checkpoint_is_evaluated_within_its_context_and_refused_elsewhere() {
+        let root = std::env::temp_dir().join(format!("icrl-eval-load-eppo-{}", std::process::id()));
+        let mut table = crate::presets::preset_table("eppo", "darkroom", "quick").unwrap();
+        let sets = [
+            "max_episode_steps=6",
+            "k_min=2",
+            "k_max=2",
+            "n_envs=2",
+            "batch_size=2",
+            "encoder_hidden=16",
+            "head_hidden=16",
+            "model.d_model=16",
+            "model.n_heads=2",
+            "model.n_layers=1",
+            "model.d_ff=32",
+            "model.max_len=12",
+            "total_updates=2",
+            "updates_per_round=2",
+            "learning_starts=0",
+            "checkpoint_every=2",
+        ]
+        .map(String::from);
+        crate::presets::apply_overrides(&mut table, &sets).unwrap();
+        let cfg: EppoConfig = crate::presets::resolve("tiny", table).unwrap();
+        let trained = crate::eppo::train(&PretrainOptions {
+            env: EnvName::DarkRoom,
+            cfg,
+            out: root.join("runs"),
+            resume: None,
+            progress: false,
+        })
+        .unwrap();
+
+        let e = load_checkpoint(&trained.run_dir, EnvName::Point)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("trained on \"darkroom\""), "{e}");
+        let agent = load_checkpoint(&trained.run_dir, EnvName::DarkRoom).unwrap();
+        assert_eq!(agent.method, Method::Eppo);
+        assert_eq!(
+            agent.context,
+            Some(ContextLimit {
+                max_episode_steps: 6,
+                max_len: 12
+            })
+        );
+        // More episodes than the context holds: a clear error.
+        let mut opts = options(root.join("eval"));
+        opts.episodes = Some(3);
+        let e = run(vec![agent], &opts).unwrap_err().to_string();
+        assert!(e.contains("pass --episodes 2 or less"), "{e}");
+        // By default K is capped to the context: 12 / 6 = 2 episodes of 6 steps.
+        let agent = load_checkpoint(&trained.last_checkpoint, EnvName::DarkRoom).unwrap();
+        opts.episodes = None;
+        opts.random = true;
+        run(vec![agent], &opts).unwrap();
+        let r = report(&root.join("eval/eppo_darkroom.json"));
+        assert_eq!(
+            (r["episodes"].as_u64(), r["max_episode_steps"].as_u64()),
+            (Some(2), Some(6))
+        );
+        let r = report(&root.join("eval/random_darkroom.json"));
+        assert_eq!(
+            r["episodes"].as_u64(),
+            Some(2),
+            "the random policy runs the same K"
+        );
+        // Budgets outside EPPO's pretraining range are refused.
+        let agent = load_checkpoint(&trained.run_dir, EnvName::DarkRoom).unwrap();
+        opts.budgets = Some(vec![16.0]);
+        let e = run(vec![agent], &opts).unwrap_err().to_string();
+        assert!(e.contains("budget 16 is outside the range [1, 15]"), "{e}");
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn ad_checkpoint_is_evaluated_with_unchanged_parameters() {
+        let root = std::env::temp_dir().join(format!("icrl-eval-load-ad-{}", std::process::id()));
+        let mut d = DatasetConfig::paper(EnvName::DarkRoom, 2, 11);
+        d.source = Source::NoisyOptimal;
+        d.steps = 600;
+        d.cost_limits = vec![0.0];
+        let data = generate(&d, &|_| {}).unwrap().file;
+        let mut cfg = AdConfig::preset("darkroom-quick").unwrap();
+        cfg.model.n_layers = 1;
+        cfg.model.d_model = 16;
+        cfg.model.n_heads = 2;
+        cfg.model.d_ff = 32;
+        cfg.model.max_len = 40;
+        cfg.batch_size = 4;
+        cfg.updates = 3;
+        cfg.checkpoint_every = 3;
+        cfg.val_fraction = 0.0;
+        let run_dir = root.join("ad");
+        crate::ad::train(
+            &TrainRequest {
+                cfg: &cfg,
+                data: &data,
+                dataset_path: Path::new("tiny.h5"),
+                run_dir: &run_dir,
+                resume: false,
+            },
+            &mut |_| {},
+            &mut |_| {},
+        )
+        .unwrap();
+        let e = load_checkpoint(&run_dir, EnvName::Car)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(e.contains("trained on \"darkroom\""), "{e}");
+        let agent = load_checkpoint(&run_dir, EnvName::DarkRoom).unwrap();
+        assert_eq!(agent.method, Method::Ad);
+        assert!(!agent.parameters.is_empty());
+        let mut opts = options(root.join("eval"));
+        opts.episodes = Some(3);
+        opts.sweep = true;
+        run(vec![agent], &opts).unwrap();
+        for name in ["ad_darkroom.json", "ad_darkroom_sweep.json"] {
+            let r = report(&root.join("eval").join(name));
+            let sums = r["parameters_checksum"].as_array().unwrap();
+            assert_eq!(sums[0], sums[1], "{name}: parameters changed");
+        }
+        // Default AD conditioning is RTG 1, CTG 0; the sweep follows SPEC 4.
+        let r = report(&root.join("eval/ad_darkroom.json"));
+        assert_eq!(r["result"]["conditions"][0]["rtg"].as_f64(), Some(1.0));
+        assert_eq!(r["result"]["conditions"][0]["ctg"].as_f64(), Some(0.0));
+        let r = report(&root.join("eval/ad_darkroom_sweep.json"));
+        let c = r["result"]["conditions"].as_array().unwrap();
+        assert_eq!(c.len(), 11);
+        assert_eq!(
+            (c[10]["rtg"].as_f64(), c[10]["ctg"].as_f64()),
+            (Some(1.5), Some(15.0))
+        );
+        // The dataset records its pretraining tasks: every evaluation task was
+        // compared with them.
+        assert_eq!(r["result"]["held_out"]["Checked"]["orientation"], "centre");
+        std::fs::remove_dir_all(&root).unwrap();
+    }
+}

@@ -624,3 +624,140 @@ pub fn darkroom_animation(
     }
     Ok(frames)
 }
+
+/// Where the objects of a SafeDarkMujoco task lie (from the environment's
+/// `NavConfig`): cells map to world xy.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ArenaGeometry {
+    /// Cells span `[-extent, extent]` in x and y.
+    pub extent: f64,
+    /// Distance between neighbouring cell centres.
+    pub spacing: f64,
+    pub goal_radius: f64,
+    pub hazard_radius: f64,
+}
+
+impl ArenaGeometry {
+    /// World xy of cell `[row, col]` (row 0 at +y).
+    pub fn cell_xy(&self, cell: [usize; 2]) -> (f64, f64) {
+        (
+            -self.extent + cell[1] as f64 * self.spacing,
+            self.extent - cell[0] as f64 * self.spacing,
+        )
+    }
+}
+
+/// A top-down GIF of one recorded SafeDarkMujoco trajectory, drawn from the
+/// robot's recorded position (observation entries 0 and 1): hazards (red;
+/// darker once entered in this trajectory), the goal (green), the robot
+/// (blue) and its path in the current episode. Episodes for which
+/// `step_frames(k)` holds get a frame every `stride` steps, the others one
+/// frame with the whole path. Returns the number of frames.
+pub fn nav_animation(
+    recording: &Recording,
+    task: &TaskRecord,
+    arena: &ArenaGeometry,
+    budget: f32,
+    step_frames: &dyn Fn(usize) -> bool,
+    stride: usize,
+    path: &Path,
+) -> Result<usize, PlotError> {
+    if recording.episodes.is_empty()
+        || recording
+            .episodes
+            .iter()
+            .any(|e| e.observations.is_empty() || e.observations.iter().any(|o| o.len() < 2))
+    {
+        return Err(PlotError::Empty(
+            "the recording holds no robot positions".into(),
+        ));
+    }
+    ensure_font()?;
+    let err = |e: String| PlotError::Draw {
+        path: path.display().to_string(),
+        message: e,
+    };
+    let (w, top) = (400i32, 56i32);
+    let root = BitMapBackend::gif(path, (w as u32, (w + top) as u32), 100)
+        .map_err(|e| err(e.to_string()))?
+        .into_drawing_area();
+    // World [-L, L]^2 to pixels, +y up.
+    let half = arena.extent + arena.spacing * 0.5;
+    let px = |(x, y): (f64, f64)| -> (i32, i32) {
+        (
+            ((x + half) / (2.0 * half) * w as f64) as i32,
+            top + ((half - y) / (2.0 * half) * w as f64) as i32,
+        )
+    };
+    let radius = |r: f64| ((r / (2.0 * half)) * w as f64).round() as i32;
+    let hazards: Vec<(f64, f64)> = task.obstacles.iter().map(|&c| arena.cell_xy(c)).collect();
+    let goal = arena.cell_xy(task.goal);
+    let mut entered = vec![false; hazards.len()];
+    let stride = stride.max(1);
+    let k_n = recording.episodes.len();
+    let mut frames = 0;
+    for (k, ep) in recording.episodes.iter().enumerate() {
+        let (mut ret, mut cost) = (0.0f32, 0.0f32);
+        let last = ep.observations.len() - 1;
+        for t in 0..=last {
+            if t > 0 {
+                ret += ep.rewards[t - 1];
+                cost += ep.costs[t - 1];
+            }
+            let pos = (ep.observations[t][0] as f64, ep.observations[t][1] as f64);
+            for (h, e) in hazards.iter().zip(entered.iter_mut()) {
+                if (h.0 - pos.0).hypot(h.1 - pos.1) <= arena.hazard_radius {
+                    *e = true;
+                }
+            }
+            let wanted = if step_frames(k) {
+                t % stride == 0 || t == last
+            } else {
+                t == last
+            };
+            if !wanted {
+                continue;
+            }
+            let d = |r: Result<(), DrawingAreaErrorKind<_>>| r.map_err(|e| err(e.to_string()));
+            d(root.fill(&RGBColor(235, 235, 235)))?;
+            d(root.draw(&Rectangle::new([(0, 0), (w, top)], WHITE.filled())))?;
+            for (h, &e) in hazards.iter().zip(&entered) {
+                let colour = if e {
+                    RGBColor(150, 20, 20)
+                } else {
+                    RGBColor(240, 130, 130)
+                };
+                d(root.draw(&Circle::new(
+                    px(*h),
+                    radius(arena.hazard_radius),
+                    colour.filled(),
+                )))?;
+            }
+            d(root.draw(&Circle::new(
+                px(goal),
+                radius(arena.goal_radius),
+                RGBColor(60, 180, 75).filled(),
+            )))?;
+            let trail: Vec<(i32, i32)> = ep.observations[..=t]
+                .iter()
+                .map(|o| px((o[0] as f64, o[1] as f64)))
+                .collect();
+            d(root.draw(&PathElement::new(
+                trail,
+                RGBColor(31, 119, 180).stroke_width(2),
+            )))?;
+            d(root.draw(&Circle::new(px(pos), 6, RGBColor(31, 119, 180).filled())))?;
+            let line1 = format!(
+                "task seed ...{:06}  episode {}/{k_n}  step {t}",
+                task.seed % 1_000_000,
+                k + 1
+            );
+            let line2 = format!("return {ret:.0}  cost {cost:.0}  budget {budget:.1}");
+            d(root.draw(&Text::new(line1, (6, 6), ("sans-serif", 16))))?;
+            d(root.draw(&Text::new(line2, (6, 28), ("sans-serif", 16))))?;
+            d(root.present())?;
+            frames += 1;
+        }
+    }
+    Ok(frames)
+}
