@@ -348,6 +348,21 @@ pub struct Summary {
     pub trend: Trend,
     /// Mean CTG over the conditions (the budget line of Figure 1).
     pub mean_budget: f32,
+    /// Per task, the least-squares slope of the total return against the CTG
+    /// over the conditions; mean and s.e. over tasks (`None` with fewer than
+    /// two distinct CTGs). Positive: more budget buys more return.
+    pub total_return_slope: Option<MeanSe>,
+    /// The same for the maximum episode cost.
+    pub max_cost_slope: Option<MeanSe>,
+}
+
+/// Least-squares slope of `ys` against `xs`; `None` when the x values do not vary.
+fn slope(xs: &[f64], ys: &[f64]) -> Option<f64> {
+    let n = xs.len() as f64;
+    let (mx, my) = (xs.iter().sum::<f64>() / n, ys.iter().sum::<f64>() / n);
+    let sxx: f64 = xs.iter().map(|x| (x - mx).powi(2)).sum();
+    let sxy: f64 = xs.iter().zip(ys).map(|(x, y)| (x - mx) * (y - my)).sum();
+    (sxx > 0.0).then(|| sxy / sxx)
 }
 
 /// Mean and s.e. that never fails: callers pass non-empty samples.
@@ -461,11 +476,30 @@ impl EvalResult {
         };
         let mean_budget =
             self.conditions.iter().map(|c| c.ctg).sum::<f32>() / self.conditions.len() as f32;
+        let ctgs: Vec<f64> = self.conditions.iter().map(|c| c.ctg as f64).collect();
+        let slopes = |per_task: &dyn Fn(usize, usize) -> f64| -> Option<MeanSe> {
+            let s: Option<Vec<f64>> = (0..self.n_tasks())
+                .map(|t| {
+                    let ys: Vec<f64> = (0..self.conditions.len()).map(|c| per_task(c, t)).collect();
+                    slope(&ctgs, &ys)
+                })
+                .collect();
+            s.and_then(|s| mean_se(&s))
+        };
+        let total_return_slope =
+            slopes(&|c, t| self.returns[c][t].iter().map(|&g| g as f64).sum::<f64>());
+        let max_cost_slope = slopes(&|c, t| {
+            self.costs[c][t]
+                .iter()
+                .fold(f64::NEG_INFINITY, |m, &g| m.max(g as f64))
+        });
         Summary {
             per_episode,
             per_condition,
             trend,
             mean_budget,
+            total_return_slope,
+            max_cost_slope,
         }
     }
 }
@@ -1221,6 +1255,19 @@ mod tests {
         close(s.trend.cost_drop.mean, 1.0);
         close(s.trend.first_cost.mean, 2.0);
         close(s.mean_budget as f64, 2.0);
+        // Slopes over CTG 1 -> 3: totals (1, 1), (2, 2), (0, 2) -> 0, 0, 1;
+        // max costs (2, 2), (0, 0), (4, 4) -> 0.
+        let r = s.total_return_slope.unwrap();
+        close(r.mean, 1.0 / 3.0);
+        close(
+            r.se,
+            ((2.0 * (1.0f64 / 9.0) + 4.0 / 9.0) / 2.0 / 3.0).sqrt(),
+        );
+        close(s.max_cost_slope.unwrap().mean, 0.0);
+        // One condition: no slope.
+        let mut one = fake_result();
+        one.conditions.truncate(1);
+        assert!(one.summary().total_return_slope.is_none());
         assert_eq!(s.per_episode[0].ret.n, 3);
     }
 

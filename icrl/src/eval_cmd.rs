@@ -514,7 +514,7 @@ fn headline(r: &EvalReport) -> String {
     let t = &r.summary.trend;
     format!(
         "{} {} {}: return first {} eps {:.3}±{:.3} -> last {:.3}±{:.3}; cost {:.3}±{:.3} -> {:.3}±{:.3}; \
-         over-budget rate last {:.3}; {:.1} s",
+         over-budget rate last {:.3}{}; {:.1} s",
         r.method,
         r.env,
         r.protocol,
@@ -532,6 +532,13 @@ fn headline(r: &EvalReport) -> String {
             .last()
             .map(|e| e.violation.mean)
             .unwrap_or(f64::NAN),
+        match (&r.summary.total_return_slope, &r.summary.max_cost_slope) {
+            (Some(a), Some(b)) => format!(
+                "; d total return / d CTG {:.3}±{:.3}, d max cost / d CTG {:.3}±{:.3}",
+                a.mean, a.se, b.mean, b.se
+            ),
+            _ => String::new(),
+        },
         r.wall_seconds
     )
 }
