@@ -1,0 +1,71 @@
+//! `icrl eval` from the command line: bad input fails with a clear message
+//! and a non-zero exit code; a small random-policy evaluation writes its files.
+
+use std::process::Command;
+
+fn icrl(args: &[&str]) -> (bool, String, String) {
+    let out = Command::new(env!("CARGO_BIN_EXE_icrl"))
+        .arg("eval")
+        .args(args)
+        .output()
+        .expect("run icrl");
+    (
+        out.status.success(),
+        String::from_utf8_lossy(&out.stdout).into_owned(),
+        String::from_utf8_lossy(&out.stderr).into_owned(),
+    )
+}
+
+#[test]
+fn bad_input_is_refused_with_a_clear_message() {
+    let (ok, _, err) = icrl(&["--env", "nowhere"]);
+    assert!(!ok && err.contains("invalid value 'nowhere'"), "{err}");
+    let (ok, _, err) = icrl(&["--env", "darkroom", "--tasks", "0"]);
+    assert!(!ok && err.contains("task set is empty"), "{err}");
+    let (ok, _, err) = icrl(&["--env", "darkroom", "--checkpoint", "/nonexistent/run"]);
+    assert!(
+        !ok && err.contains("/nonexistent/run: not a folder"),
+        "{err}"
+    );
+    let (ok, _, err) = icrl(&["--env", "darkroom", "--no-random"]);
+    assert!(!ok && err.contains("nothing to evaluate"), "{err}");
+    let (ok, _, err) = icrl(&["--env", "darkroom", "--budgets", "nan"]);
+    assert!(!ok && err.contains("finite"), "{err}");
+}
+
+#[test]
+fn random_policy_evaluation_from_the_command_line() {
+    let out = std::env::temp_dir().join(format!("icrl-eval-cli-{}", std::process::id()));
+    let out_s = out.display().to_string();
+    let (ok, stdout, err) = icrl(&[
+        "--env",
+        "darkroom",
+        "--tasks",
+        "2",
+        "--episodes",
+        "3",
+        "--n-budgets",
+        "2",
+        "--sweep",
+        "--render",
+        "--out",
+        &out_s,
+    ]);
+    assert!(ok, "{err}");
+    assert!(
+        stdout.contains("random policy darkroom figure1"),
+        "{stdout}"
+    );
+    for name in [
+        "random_darkroom.json",
+        "figure1_darkroom.png",
+        "figure2_darkroom.svg",
+        "render_random_darkroom.gif",
+    ] {
+        let len = std::fs::metadata(out.join(name))
+            .map(|m| m.len())
+            .unwrap_or(0);
+        assert!(len > 100, "{name}: {len} bytes");
+    }
+    std::fs::remove_dir_all(&out).unwrap();
+}
