@@ -893,6 +893,85 @@ pub fn pretrain_command(
     Ok(summary)
 }
 
+/// Draws `metrics.jsonl` of an AD run: loss and accuracy (training windows and
+/// held-out tasks) against updates, into `<run>/training_loss.{png,svg}`.
+pub fn plot_training(run_dir: &Path) -> Result<Vec<PathBuf>, AdError> {
+    use crate::plots::{Band, METHOD_COLOURS, Panel, draw_panels};
+    let path = run_dir.join("metrics.jsonl");
+    let text = fs::read_to_string(&path).map_err(|e| io_err(&path, e))?;
+    let records: Vec<AdMetrics> = text
+        .lines()
+        .map(serde_json::from_str)
+        .collect::<Result<_, _>>()
+        .map_err(|e| io_err(&path, e))?;
+    if records.is_empty() {
+        return Err(io_err(&path, "no metrics recorded yet"));
+    }
+    let x: Vec<f64> = records.iter().map(|m| m.update as f64).collect();
+    let band = |label: &str, ys: Vec<Option<f64>>, colour| {
+        let pts: Vec<(f64, f64)> = x
+            .iter()
+            .zip(ys)
+            .filter_map(|(&x, y)| y.map(|y| (x, y)))
+            .collect();
+        Band {
+            label: label.into(),
+            x: pts.iter().map(|p| p.0).collect(),
+            mean: pts.iter().map(|p| p.1).collect(),
+            se: Vec::new(),
+            colour,
+            thin: false,
+        }
+    };
+    let loss = Panel {
+        title: "supervised loss (Eq. 16)".into(),
+        x_label: "update".into(),
+        y_label: "cross-entropy".into(),
+        bands: vec![
+            band(
+                "training windows",
+                records.iter().map(|m| Some(m.train_loss)).collect(),
+                METHOD_COLOURS[0],
+            ),
+            band(
+                "held-out tasks",
+                records.iter().map(|m| m.val_loss).collect(),
+                METHOD_COLOURS[1],
+            ),
+        ],
+        ..Default::default()
+    };
+    let acc = Panel {
+        title: "action accuracy".into(),
+        x_label: "update".into(),
+        y_label: "fraction of actions predicted".into(),
+        bands: vec![
+            band(
+                "training windows",
+                records.iter().map(|m| m.train_accuracy).collect(),
+                METHOD_COLOURS[0],
+            ),
+            band(
+                "held-out tasks",
+                records.iter().map(|m| m.val_accuracy).collect(),
+                METHOD_COLOURS[1],
+            ),
+        ],
+        ..Default::default()
+    };
+    let panels: Vec<Panel> = if records[0].train_accuracy.is_some() {
+        vec![loss, acc]
+    } else {
+        vec![Panel {
+            title: "supervised loss (Eq. 17)".into(),
+            y_label: "squared error".into(),
+            ..loss
+        }]
+    };
+    draw_panels(&run_dir.join("training_loss"), 1, panels.len(), &panels)
+        .map_err(|e| io_err(run_dir, e))
+}
+
 // ---------------------------------------------------------------------------
 // The frozen agent
 // ---------------------------------------------------------------------------
@@ -1152,9 +1231,7 @@ mod tests {
                 AdConfig::preset(&format!("{env}-{p}")).unwrap();
             }
         }
-        let e = AdConfig::preset("darkroom-table1")
-            .unwrap_err()
-            .to_string();
+        let e = AdConfig::preset("darkroom-table1").unwrap_err().to_string();
         assert!(e.contains("ad-darkroom-quick"), "{e}");
     }
 

@@ -341,6 +341,102 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
     })
 }
 
+/// Draws how the histories of a file improve: mean episode return and cost
+/// against learning progress (each history cut into `bins` equal parts of its
+/// episodes), one curve per cost limit with a band of one standard error over
+/// histories, the limits as dashed lines. Writes `<stem>.png` and `<stem>.svg`.
+pub fn plot_histories(
+    path: &std::path::Path,
+    stem: &std::path::Path,
+    bins: usize,
+) -> Result<Vec<std::path::PathBuf>, DatasetError> {
+    use crate::plots::{Band, HLine, METHOD_COLOURS, Panel, draw_panels};
+    let file = crate::histories::read_histories(path, None)?;
+    let bins = bins.max(1);
+    let mut limits: Vec<f32> = Vec::new();
+    for h in &file.histories {
+        if !limits.contains(&h.cost_limit) {
+            limits.push(h.cost_limit);
+        }
+    }
+    let x: Vec<f64> = (0..bins).map(|b| (b as f64 + 0.5) / bins as f64).collect();
+    let mut ret = Panel {
+        title: format!("{}: PPO-Lagrangian learning histories", file.info.env),
+        x_label: "fraction of the history's episodes".into(),
+        y_label: "episode return".into(),
+        ..Default::default()
+    };
+    let mut cost = Panel {
+        title: format!("{}: episode cost", file.info.env),
+        x_label: "fraction of the history's episodes".into(),
+        y_label: "episode cost".into(),
+        ..Default::default()
+    };
+    for (i, &limit) in limits.iter().enumerate() {
+        // Per history, the mean of each bin; then mean and s.e. over histories.
+        let mut per_hist: Vec<Vec<(f64, f64)>> = Vec::new();
+        for h in file.histories.iter().filter(|h| h.cost_limit == limit) {
+            let totals = h.episode_totals();
+            if totals.len() < bins {
+                continue;
+            }
+            per_hist.push(
+                (0..bins)
+                    .map(|b| {
+                        let part = &totals[b * totals.len() / bins..(b + 1) * totals.len() / bins];
+                        let n = part.len() as f64;
+                        (
+                            part.iter().map(|e| e.0 as f64).sum::<f64>() / n,
+                            part.iter().map(|e| e.1 as f64).sum::<f64>() / n,
+                        )
+                    })
+                    .collect(),
+            );
+        }
+        let n = per_hist.len() as f64;
+        if n == 0.0 {
+            continue;
+        }
+        let stat = |f: &dyn Fn(&(f64, f64)) -> f64| -> (Vec<f64>, Vec<f64>) {
+            (0..bins)
+                .map(|b| {
+                    let v: Vec<f64> = per_hist.iter().map(|h| f(&h[b])).collect();
+                    let m = v.iter().sum::<f64>() / n;
+                    let var = v.iter().map(|x| (x - m).powi(2)).sum::<f64>() / (n - 1.0).max(1.0);
+                    (m, (var / n).sqrt())
+                })
+                .unzip()
+        };
+        let colour = METHOD_COLOURS[i % METHOD_COLOURS.len()];
+        let label = format!("cost limit {limit} ({} histories)", per_hist.len());
+        let (m, se) = stat(&|p| p.0);
+        ret.bands.push(Band {
+            label: label.clone(),
+            x: x.clone(),
+            mean: m,
+            se,
+            colour,
+            thin: false,
+        });
+        let (m, se) = stat(&|p| p.1);
+        cost.bands.push(Band {
+            label,
+            x: x.clone(),
+            mean: m,
+            se,
+            colour,
+            thin: false,
+        });
+        cost.hlines.push(HLine {
+            label: format!("limit {limit}"),
+            y: limit as f64,
+            colour,
+        });
+    }
+    draw_panels(stem, 1, 2, &[ret, cost])
+        .map_err(|e| DatasetError::Config(format!("plotting {}: {e}", stem.display())))
+}
+
 // ---------------------------------------------------------------------------
 // AD-eps: the noisy optimal policy on SafeDarkRoom
 // ---------------------------------------------------------------------------

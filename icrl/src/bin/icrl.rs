@@ -34,6 +34,17 @@ enum Command {
     },
     /// Make learning histories (PPO-Lagrangian or AD-eps) for supervised pretraining, as HDF5.
     Dataset(DatasetArgs),
+    /// Draw how a history file's episodes improve (return and cost against learning progress).
+    PlotHistories {
+        /// The HDF5 file.
+        file: PathBuf,
+        /// Output stem: writes STEM.png and STEM.svg.
+        #[arg(long)]
+        out: PathBuf,
+        /// Bins of learning progress.
+        #[arg(long, default_value_t = 20)]
+        bins: usize,
+    },
     /// Evaluate checkpoints in context on held-out edge-oriented tasks: JSON, CSV, figures.
     Eval(icrl_eval::EvalArgs),
 }
@@ -195,9 +206,20 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Pretrain(args) => pretrain(args),
+        // An AD run folder has spec.json; EPPO's has a manifest.
+        Command::PlotTraining { run, .. } if run.join("spec.json").exists() => {
+            icrl::ad::plot_training(&run)
+                .map(|fs| fs.iter().for_each(|f| println!("wrote {}", f.display())))
+                .map_err(Into::into)
+        }
         Command::PlotTraining { run, window } => icrl::eppo::plot_learning_curve(&run, window)
             .map(|f| println!("wrote {}", f.display()))
             .map_err(Into::into),
+        Command::PlotHistories { file, out, bins } => {
+            icrl::dataset::plot_histories(&file, &out, bins)
+                .map(|fs| fs.iter().for_each(|f| println!("wrote {}", f.display())))
+                .map_err(Into::into)
+        }
         Command::Dataset(args) => dataset(args),
         Command::Eval(args) => icrl_eval::eval(args),
     };
