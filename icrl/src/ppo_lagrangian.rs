@@ -937,4 +937,29 @@ mod tests {
         let again = train(&cfg, &darkroom, &easy_task(), 2.5, 3, &mut |_| {}).unwrap();
         assert_eq!(again.history, run.history);
     }
+
+    #[test]
+    fn gaussian_policy_on_point_records_clipped_actions() {
+        let cfg = PpoLagConfig {
+            total_steps: 2 * 2 * 128,
+            num_envs: 2,
+            rollout_steps: 128,
+            ..PpoLagConfig::mujoco()
+        };
+        let point = || make_env(EnvName::Point, &EnvOptions::default());
+        let spawn = safety_envs::spawn_config(EnvName::Point);
+        let task = safety_envs::sample_task(&spawn, safety_envs::Orientation::Centre, 4).unwrap();
+        let run = train(&cfg, &point, &task, 5.0, 4, &mut |_| {}).unwrap();
+        assert_eq!(run.metrics.len(), 2);
+        let h = &run.history;
+        assert!(!h.is_empty() && h.actions.len() == 2 * h.len());
+        assert!(h.actions.iter().all(|a| (-1.0..=1.0).contains(a)));
+        // Some actions were clipped: the Gaussian samples leave the box.
+        assert!(h.actions.iter().any(|a| a.abs() == 1.0));
+        assert!(
+            run.metrics
+                .iter()
+                .all(|m| m.entropy.is_finite() && m.policy_loss.is_finite())
+        );
+    }
 }
