@@ -630,6 +630,105 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
     Ok(out)
 }
 
+/// Redraws Figures 1 and 2 with one column per environment from the JSON
+/// reports earlier `eval` runs wrote into `dirs` (files that are not reports
+/// are skipped). Writes `figure1_all` and, when sweeps are present,
+/// `figure2_all` (PNG and SVG) into `out`.
+pub fn replot(dirs: &[PathBuf], out: &Path) -> Result<EvalOutputs, EvalCmdError> {
+    // (env, method, sweep) -> summary, in file-name order for stability.
+    let mut reports: Vec<(EnvName, Method, bool, Summary)> = Vec::new();
+    for dir in dirs {
+        let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+            .map_err(io_err(dir))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|x| x == "json"))
+            .collect();
+        files.sort();
+        for f in files {
+            let text = std::fs::read(&f).map_err(io_err(&f))?;
+            let Ok(v) = serde_json::from_slice::<serde_json::Value>(&text) else {
+                continue;
+            };
+            let (Some(env), Some(method), Some(protocol), Some(summary)) = (
+                v.get("env").and_then(|e| e.as_str()),
+                v.get("method").and_then(|m| m.as_str()),
+                v.get("protocol").and_then(|p| p.as_str()),
+                v.get("summary"),
+            ) else {
+                continue;
+            };
+            let Ok(env) = env.parse::<EnvName>() else {
+                continue;
+            };
+            let method = match method {
+                "Eppo" => Method::Eppo,
+                "Ad" => Method::Ad,
+                "Random" => Method::Random,
+                _ => continue,
+            };
+            let summary: Summary =
+                serde_json::from_value(summary.clone()).map_err(|source| EvalCmdError::Json {
+                    path: f.display().to_string(),
+                    source,
+                })?;
+            reports.push((env, method, protocol == "sweep", summary));
+        }
+    }
+    if reports.is_empty() {
+        return Err(EvalCmdError::Options(format!(
+            "no eval reports (*.json written by icrl eval) in {}",
+            dirs.iter()
+                .map(|d| d.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        )));
+    }
+    let curves = |sweep: bool| -> Vec<EnvCurves> {
+        EnvName::ALL
+            .into_iter()
+            .filter_map(|env| {
+                let mut c = EnvCurves {
+                    env: env_defaults(env).title.into(),
+                    methods: Vec::new(),
+                    random: None,
+                };
+                for method in [Method::Eppo, Method::Ad, Method::Random] {
+                    if let Some((.., s)) = reports
+                        .iter()
+                        .find(|r| r.0 == env && r.1 == method && r.2 == sweep)
+                    {
+                        match method {
+                            Method::Random => c.random = Some(s.clone()),
+                            m => c.methods.push((m.to_string(), s.clone())),
+                        }
+                    }
+                }
+                (!c.methods.is_empty() || c.random.is_some()).then_some(c)
+            })
+            .collect()
+    };
+    std::fs::create_dir_all(out).map_err(io_err(out))?;
+    let mut outputs = EvalOutputs::default();
+    let fig1 = curves(false);
+    if !fig1.is_empty() {
+        outputs
+            .files
+            .extend(plots::figure1(&fig1, &out.join("figure1_all"))?);
+    }
+    let fig2 = curves(true);
+    if !fig2.is_empty() {
+        outputs
+            .files
+            .extend(plots::figure2(&fig2, &out.join("figure2_all"))?);
+    }
+    outputs.lines.push(format!(
+        "redrew {} reports ({} environments)",
+        reports.len(),
+        fig1.len().max(fig2.len())
+    ));
+    Ok(outputs)
+}
+
 /// The animation of the recorded trajectory.
 fn render(
     env: EnvName,
@@ -731,6 +830,37 @@ mod tests {
         assert_eq!(json["episodes"], 4);
         let csv = std::fs::read_to_string(dir.join("random_darkroom_episodes.csv")).unwrap();
         assert_eq!(csv.lines().filter(|l| !l.starts_with('#')).count(), 1 + 4);
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn reports_of_two_environments_are_redrawn_side_by_side() {
+        let dir = std::env::temp_dir().join(format!("icrl-eval-replot-{}", std::process::id()));
+        let mut a = options(dir.join("darkroom"));
+        a.sweep = false;
+        run(Vec::new(), &a).unwrap();
+        let mut b = options(dir.join("point"));
+        b.env = EnvName::Point;
+        b.episodes = Some(2);
+        b.sweep = false;
+        run(Vec::new(), &b).unwrap();
+        let out = replot(&[dir.join("darkroom"), dir.join("point")], &dir.join("all")).unwrap();
+        assert_eq!(out.files.len(), 2, "figure 1 only: no sweeps");
+        assert!(
+            out.lines[0].contains("2 reports (2 environments)"),
+            "{:?}",
+            out.lines
+        );
+        assert!(
+            std::fs::metadata(dir.join("all/figure1_all.png"))
+                .unwrap()
+                .len()
+                > 1000
+        );
+        let e = replot(&[dir.join("all")], &dir.join("x"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("no eval reports"), "{e}");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 

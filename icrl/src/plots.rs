@@ -349,7 +349,7 @@ fn tick(v: &f64) -> String {
         format!("{v:.0}")
     } else {
         let s = format!("{v:.3}");
-        s.trim_end_matches('0').to_string()
+        s.trim_end_matches('0').trim_end_matches('.').to_string()
     }
 }
 
@@ -384,8 +384,12 @@ fn extents(panel: &Panel) -> ((f64, f64), (f64, f64)) {
     if !y.0.is_finite() {
         y = (0.0, 1.0);
     }
-    // Costs and returns are non-negative: start the axis at zero.
+    // Costs and returns are non-negative: start the axis at zero; a flat
+    // curve gets a unit-high axis.
     y.0 = y.0.min(0.0);
+    if y.1 - y.0 < 1e-9 {
+        y.1 = y.0 + 1.0;
+    }
     let pad = |(lo, hi): (f64, f64)| {
         let span = (hi - lo).max(1e-6);
         (lo - 0.04 * span, hi + 0.08 * span)

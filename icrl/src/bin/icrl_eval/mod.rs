@@ -13,9 +13,13 @@ pub struct EvalArgs {
     /// or an AD run folder. Repeat to draw several methods on the same axes.
     #[arg(long, value_name = "DIR")]
     checkpoint: Vec<PathBuf>,
-    /// Environment.
+    /// Environment (required unless --from).
     #[arg(long, value_parser = ["darkroom", "point", "car"])]
-    env: String,
+    env: Option<String>,
+    /// Evaluate nothing: redraw Figures 1 and 2, one column per environment,
+    /// from the JSON reports earlier runs wrote into these folders (repeatable).
+    #[arg(long, value_name = "DIR", conflicts_with_all = ["checkpoint", "env"])]
+    from: Vec<PathBuf>,
     /// Held-out evaluation tasks (edge-oriented).
     #[arg(long, default_value_t = 16)]
     tasks: usize,
@@ -62,7 +66,18 @@ pub struct EvalArgs {
 }
 
 pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
-    let env: EnvName = args.env.parse()?;
+    if !args.from.is_empty() {
+        let out = eval_cmd::replot(&args.from, &args.out)?;
+        for line in &out.lines {
+            println!("{line}");
+        }
+        println!("wrote {} files to {}", out.files.len(), args.out.display());
+        return Ok(());
+    }
+    let Some(env) = args.env else {
+        anyhow::bail!("--env is required (darkroom, point or car), unless redrawing with --from");
+    };
+    let env: EnvName = env.parse()?;
     let threads = args
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
