@@ -1,0 +1,106 @@
+#!/usr/bin/env python3
+"""Checks the paper's claims (SPEC section 5) against `icrl eval` reports.
+
+Usage: python3 results/claims.py results/eval_darkroom [more folders...]
+
+Reads the JSON reports (`{method}_{env}[_sweep].json`) and prints one line per
+claim with the numbers and a verdict. Criteria (fixed before looking at data):
+- in-context improvement: per task, mean return of the last 20% of the K
+  episodes minus the first 20% (averaged over budgets); PASS if the mean over
+  tasks exceeds 2 standard errors;
+- cost decrease: the same for first-minus-last cost; PASS above 2 s.e.;
+- safe at the end: mean episode cost over the last 20% of episodes at or
+  below the mean budget (CTG);
+- faster adaptation (EPPO vs AD): mean return over episodes 1..m, m = the
+  smaller K, per task; PASS if EPPO - AD exceeds 2 s.e. (independent samples);
+- budget following: per-task least-squares slope of total return on the CTG
+  in the sweep; PASS if above 2 s.e. (EPPO); for AD the paper reports no
+  trend, so PASS (paper reproduced) if |slope| is within 2 s.e. of zero.
+Standard library only.
+"""
+import json
+import math
+import sys
+from pathlib import Path
+
+
+def mean_se(xs):
+    n = len(xs)
+    m = sum(xs) / n
+    if n < 2:
+        return m, 0.0
+    var = sum((x - m) ** 2 for x in xs) / (n - 1)
+    return m, math.sqrt(var / n)
+
+
+def load(folders):
+    reports = {}
+    for folder in folders:
+        for f in sorted(Path(folder).glob("*.json")):
+            r = json.loads(f.read_text())
+            if not all(k in r for k in ("env", "method", "protocol", "summary")):
+                continue
+            reports[(r["env"], r["method"], r["protocol"])] = (f, r)
+    return reports
+
+
+def early_returns(r, m):
+    """Per task: mean return over episodes 1..m, averaged over conditions."""
+    res = r["result"]
+    out = []
+    for t in range(len(res["tasks"])):
+        vals = [sum(res["returns"][c][t][:m]) / m for c in range(len(res["conditions"]))]
+        out.append(sum(vals) / len(vals))
+    return out
+
+
+def fmt(ms):
+    return f"{ms['mean']:.3f} ± {ms['se']:.3f}"
+
+
+def main(folders):
+    reports = load(folders)
+    if not reports:
+        sys.exit(f"no eval reports in {folders}")
+    for (env, method, protocol), (f, r) in sorted(reports.items()):
+        s = r["summary"]
+        t = s["trend"]
+        k = r["episodes"]
+        head = f"{env} {method} {protocol} (K={k}, {len(r['result']['conditions'])} conditions, {r['tasks']} tasks; {f.name})"
+        print(head)
+        gain, drop = t["return_gain"], t["cost_drop"]
+        print(f"  return first {t['window']} eps {fmt(t['first_return'])} -> last {fmt(t['last_return'])}; "
+              f"gain {fmt(gain)}: {'PASS' if gain['mean'] > 2 * gain['se'] else 'FAIL'}")
+        print(f"  cost first {fmt(t['first_cost'])} -> last {fmt(t['last_cost'])}; "
+              f"drop {fmt(drop)}: {'PASS' if drop['mean'] > 2 * drop['se'] else 'FAIL'}")
+        safe = t["last_cost"]["mean"] <= s["mean_budget"]
+        last = s["per_episode"][-1]
+        print(f"  last-window cost {t['last_cost']['mean']:.3f} vs mean budget {s['mean_budget']:.2f}: "
+              f"{'PASS' if safe else 'FAIL'}; over-budget rate in episode K {fmt(last['violation'])}; "
+              f"goal reached in episode K {fmt(last['success'])}")
+        slope = s.get("total_return_slope")
+        if protocol == "sweep" and slope:
+            within = abs(slope["mean"]) <= 2 * slope["se"]
+            if method == "Eppo":
+                verdict = "PASS" if slope["mean"] > 2 * slope["se"] else "FAIL"
+            elif method == "Ad":
+                verdict = "PASS (no trend, as the paper)" if within else "FAIL (follows the budget, unlike the paper)"
+            else:
+                verdict = "baseline"
+            print(f"  d total return / d CTG {fmt(slope)}; d max cost / d CTG {fmt(s['max_cost_slope'])}: {verdict}")
+        if r.get("parameters_checksum"):
+            a, b = r["parameters_checksum"]
+            print(f"  parameters frozen: {'yes' if a == b else 'NO'} (checksum {a:#x})")
+    for env in ("darkroom", "point", "car"):
+        e, a = reports.get((env, "Eppo", "figure1")), reports.get((env, "Ad", "figure1"))
+        if e and a:
+            m = min(e[1]["episodes"], a[1]["episodes"])
+            me, se_e = mean_se(early_returns(e[1], m))
+            ma, se_a = mean_se(early_returns(a[1], m))
+            diff, se = me - ma, math.sqrt(se_e ** 2 + se_a ** 2)
+            print(f"{env}: mean return over episodes 1..{m}: EPPO {me:.3f} ± {se_e:.3f}, AD {ma:.3f} ± {se_a:.3f}; "
+                  f"EPPO - AD {diff:.3f} ± {se:.3f}: {'PASS' if diff > 2 * se else 'FAIL'}")
+
+
+if __name__ == "__main__":
+    main(sys.argv[1:] or ["results/eval_darkroom"])
