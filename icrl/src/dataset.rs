@@ -360,8 +360,19 @@ pub fn plot_histories(
         }
     }
     let x: Vec<f64> = (0..bins).map(|b| (b as f64 + 0.5) / bins as f64).collect();
+    let source = serde_json::from_str::<serde_json::Value>(&file.info.config)
+        .ok()
+        .and_then(|v| v["dataset"]["source"].as_str().map(str::to_string))
+        .map_or("", |s| {
+            if s == "noisy-optimal" {
+                "AD-eps (noisy optimal)"
+            } else {
+                "PPO-Lagrangian"
+            }
+        })
+        .to_string();
     let mut ret = Panel {
-        title: format!("{}: PPO-Lagrangian learning histories", file.info.env),
+        title: format!("{}: {source} learning histories", file.info.env),
         x_label: "fraction of the history's episodes".into(),
         y_label: "episode return".into(),
         ..Default::default()
