@@ -55,6 +55,11 @@ pub struct EppoConfig {
     pub seed: u64,
     /// `cpu` or `cuda` (CUDA device 0).
     pub device: String,
+    /// libtorch intra-op threads; 0 keeps libtorch's default (one per core).
+    /// 1 is fastest for small-batch acting on a loaded machine, where OpenMP
+    /// barriers between oversubscribed threads dominate each tiny operation.
+    #[serde(default)]
+    pub torch_threads: i32,
     /// Environment time limit t_max in agent steps.
     pub max_episode_steps: usize,
     /// Fewest episodes per trajectory (K_min).
@@ -918,6 +923,9 @@ impl Learner {
     pub fn new(cfg: EppoConfig, env: EnvName) -> Result<Self, EppoError> {
         cfg.validate()?;
         let device = parse_device(&cfg.device)?;
+        if cfg.torch_threads > 0 {
+            tch::set_num_threads(cfg.torch_threads);
+        }
         let probe = make_env(
             env,
             &EnvOptions {
