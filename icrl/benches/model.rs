@@ -7,7 +7,8 @@
 //!    model and update in PyTorch eager (`icrl/benches/eppo_update_torch.py`,
 //!    run with `$ICRL_TORCH_PYTHON`, default `python3`): goal <= 0.8x.
 //!
-//! `ICRL_BENCH_THREADS` (default 2) sets the libtorch threads of both sides.
+//! `ICRL_BENCH_THREADS` (default 2) sets the libtorch threads of both sides;
+//! `ICRL_BENCH_ONLY=kv,collect,update` runs a subset (default: all).
 
 use std::process::Command;
 use std::time::Instant;
@@ -139,18 +140,33 @@ fn main() {
         .and_then(|s| s.parse().ok())
         .unwrap_or(2);
     tch::set_num_threads(threads);
+    let only = std::env::var("ICRL_BENCH_ONLY").unwrap_or_else(|_| "kv,collect,update".into());
+    let run = |part: &str| only.split(',').any(|p| p.trim() == part);
     let table1 = config("table1", &[]);
     println!("# Model / EPPO benchmarks ({threads} libtorch threads)\n");
-
-    let (full, step) = kv_cache_vs_full(&table1);
     println!("| measure | value | goal |\n|---|---|---|");
+    if run("kv") {
+        kv_part(&table1);
+    }
+    if run("collect") {
+        collect_part();
+    }
+    if run("update") {
+        update_part(&table1, threads);
+    }
+}
+
+fn kv_part(table1: &EppoConfig) {
+    let (full, step) = kv_cache_vs_full(table1);
     println!(
         "| full forward, 12 x 1500 steps (Table 1 transformer) | {:.1} ms | |\n| one KV-cached step at position 1400..1500 | {:.2} ms | |\n| speed-up of cached acting | {:.1}x | >= 20x |",
         full * 1e3,
         step * 1e3,
         full / step
     );
+}
 
+fn collect_part() {
     let (tps, sps) = collection(config("quick", &[]), 3);
     println!(
         "| trajectories/s, quick preset (8 envs, K 8, t_max 30) | {tps:.2} ({sps:.0} env steps/s) | |"
@@ -159,7 +175,9 @@ fn main() {
     println!(
         "| trajectories/s, Table 1 preset (12 envs, K 50, t_max 30) | {tps:.2} ({sps:.0} env steps/s) | |"
     );
+}
 
+fn update_part(table1: &EppoConfig, threads: i32) {
     let mut learner = Learner::new(table1.clone(), EnvName::DarkRoom).expect("learner");
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     for _ in 0..table1.batch_size {

@@ -1793,7 +1793,9 @@ pub fn plot_learning_curve(run_dir: &Path, window: usize) -> Result<PathBuf, Epp
         RGBColor(255, 127, 14),
         RGBColor(44, 160, 44),
     ];
-    let panels: [(&str, &str, Vec<(&str, &str)>); 3] = [
+    /// (title, y label, [(metric, legend)]).
+    type PanelSpec<'a> = (&'a str, &'a str, Vec<(&'a str, &'a str)>);
+    let panels: [PanelSpec; 3] = [
         (
             "return (training tasks)",
             "episode return",
