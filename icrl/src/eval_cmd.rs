@@ -21,7 +21,9 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
-use safety_envs::{CmdpEnv, EnvError, EnvName, EnvOptions, make_env, spawn_config};
+use safety_envs::{
+    CmdpEnv, EnvError, EnvName, EnvOptions, Orientation, make_env, sample_task, spawn_config,
+};
 use serde::Serialize;
 use thiserror::Error;
 
@@ -752,24 +754,31 @@ fn render(
             } else {
                 safety_envs::nav::Robot::Car
             };
-            let nav = safety_envs::nav::NavConfig::new(robot);
+            let nav = safety_envs::nav::NavConfig {
+                max_episode_steps: report.max_episode_steps,
+                ..safety_envs::nav::NavConfig::new(robot)
+            };
+            let k_n = rec.episodes.len();
+            // Every 3rd step of the first two and the last episode, rendered
+            // by MuJoCo from a replay of the recorded actions; without
+            // off-screen OpenGL, a drawing from the recorded positions.
+            let steps = |k: usize| k < 2 || k + 1 == k_n;
+            let task_value = sample_task(&spawn_config(env), Orientation::Edge, task.seed)?;
+            let mut sim = safety_envs::SafeDarkMujoco::new(nav.clone())?;
+            sim.set_task(&task_value)?;
+            match plots::nav_render_animation(&mut sim, rec, task, budget, &steps, 3, path) {
+                Ok(_) => return Ok(()),
+                Err(e) => eprintln!(
+                    "MuJoCo rendering failed ({e}); drawing the recorded positions instead"
+                ),
+            }
             let arena = plots::ArenaGeometry {
                 extent: nav.extent,
                 spacing: nav.spacing(),
                 goal_radius: nav.goal_radius,
                 hazard_radius: nav.hazard_radius,
             };
-            let k_n = rec.episodes.len();
-            // Every 3rd step of the first two and the last episode.
-            plots::nav_animation(
-                rec,
-                task,
-                &arena,
-                budget,
-                &|k| k < 2 || k + 1 == k_n,
-                3,
-                path,
-            )?;
+            plots::nav_animation(rec, task, &arena, budget, &steps, 3, path)?;
             Ok(())
         }
     }

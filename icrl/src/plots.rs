@@ -765,3 +765,95 @@ pub fn nav_animation(
     }
     Ok(frames)
 }
+
+/// A GIF of one recorded SafeDarkMujoco trajectory rendered by MuJoCo
+/// (OSMesa, top-down camera `top`): the recorded actions are replayed in
+/// `env` (a fresh environment of the same robot and time limit, with the
+/// recorded task set), checking at every step that the replay reproduces the
+/// recorded observation. Frames as in [`nav_animation`]. Returns the number
+/// of frames.
+pub fn nav_render_animation(
+    env: &mut safety_envs::SafeDarkMujoco,
+    recording: &Recording,
+    task: &TaskRecord,
+    budget: f32,
+    step_frames: &dyn Fn(usize) -> bool,
+    stride: usize,
+    path: &Path,
+) -> Result<usize, PlotError> {
+    use safety_envs::mujoco::{Camera, Quality, Renderer};
+    use safety_envs::{Action, CmdpEnv};
+    ensure_font()?;
+    let err = |e: String| PlotError::Draw {
+        path: path.display().to_string(),
+        message: e,
+    };
+    let size = 360usize;
+    let top = 56i32;
+    let mut renderer = Renderer::with_quality(env.model(), size, size, Quality::Fast)
+        .map_err(|e| err(e.to_string()))?;
+    let camera = Camera::Named("top".into());
+    let root = BitMapBackend::gif(path, (size as u32, size as u32 + top as u32), 100)
+        .map_err(|e| err(e.to_string()))?
+        .into_drawing_area();
+    let obs_dim = env.observation_space().flat_dim();
+    let mut obs = vec![0.0f32; obs_dim];
+    let stride = stride.max(1);
+    let k_n = recording.episodes.len();
+    let mut frames = 0;
+    for (k, ep) in recording.episodes.iter().enumerate() {
+        env.reset(ep.reset_seed, &mut obs)
+            .map_err(|e| err(e.to_string()))?;
+        let (mut ret, mut cost) = (0.0f32, 0.0f32);
+        let last = ep.actions.len();
+        for t in 0..=last {
+            if ep
+                .observations
+                .get(t)
+                .is_none_or(|o| o.as_slice() != obs.as_slice())
+            {
+                return Err(err(format!(
+                    "replay of episode {} diverged from the recording at step {t}",
+                    k + 1
+                )));
+            }
+            let wanted = if step_frames(k) {
+                t % stride == 0 || t == last
+            } else {
+                t == last
+            };
+            if wanted {
+                let img = env
+                    .render(&mut renderer, &camera)
+                    .map_err(|e| err(e.to_string()))?;
+                let d = |r: Result<(), DrawingAreaErrorKind<_>>| r.map_err(|e| err(e.to_string()));
+                d(root.fill(&WHITE))?;
+                let bitmap = BitMapElement::with_owned_buffer(
+                    (0, top),
+                    (img.width as u32, img.height as u32),
+                    img.pixels,
+                )
+                .ok_or_else(|| err("rendered image smaller than its size".into()))?;
+                d(root.draw(&bitmap))?;
+                let line1 = format!(
+                    "task seed ...{:06}  episode {}/{k_n}  step {t}",
+                    task.seed % 1_000_000,
+                    k + 1
+                );
+                let line2 = format!("return {ret:.0}  cost {cost:.0}  budget {budget:.1}");
+                d(root.draw(&Text::new(line1, (6, 6), ("sans-serif", 16))))?;
+                d(root.draw(&Text::new(line2, (6, 28), ("sans-serif", 16))))?;
+                d(root.present())?;
+                frames += 1;
+            }
+            if t < last {
+                let o = env
+                    .step(Action::Continuous(&ep.actions[t]), &mut obs)
+                    .map_err(|e| err(e.to_string()))?;
+                ret += o.reward;
+                cost += o.cost;
+            }
+        }
+    }
+    Ok(frames)
+}

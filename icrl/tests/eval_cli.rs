@@ -69,3 +69,33 @@ fn random_policy_evaluation_from_the_command_line() {
     }
     std::fs::remove_dir_all(&out).unwrap();
 }
+
+#[test]
+fn point_render_replays_the_recorded_actions() {
+    let out = std::env::temp_dir().join(format!("icrl-eval-cli-point-{}", std::process::id()));
+    let out_s = out.display().to_string();
+    let (ok, _, err) = icrl(&[
+        "--env",
+        "point",
+        "--tasks",
+        "1",
+        "--episodes",
+        "2",
+        "--n-budgets",
+        "1",
+        "--render",
+        "--out",
+        &out_s,
+    ]);
+    assert!(ok, "{err}");
+    // MuJoCo renders a replay that must match the recording step for step;
+    // a divergence (or no OpenGL) would be reported on stderr.
+    assert!(!err.contains("MuJoCo rendering failed"), "{err}");
+    assert!(
+        std::fs::metadata(out.join("render_random_point.gif"))
+            .unwrap()
+            .len()
+            > 1000
+    );
+    std::fs::remove_dir_all(&out).unwrap();
+}
