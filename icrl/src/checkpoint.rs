@@ -84,10 +84,20 @@ impl Manifest {
         model: &serde_json::Value,
     ) -> Result<(), CheckpointError> {
         let fix = "resume with the same --env, method and model settings as the original run, or start a new run";
+        // Name only the model fields that differ (`model.transformer.n_layers`).
+        let mut found_model = Vec::new();
+        let mut expected_model = Vec::new();
+        diff_json(
+            "model",
+            &self.model,
+            model,
+            &mut found_model,
+            &mut expected_model,
+        );
         let pairs = [
             ("method", self.method.clone(), method.to_string()),
             ("env", self.env.clone(), env.to_string()),
-            ("model", self.model.to_string(), model.to_string()),
+            ("model", found_model.join(", "), expected_model.join(", ")),
         ];
         for (what, found, expected) in pairs {
             if found != expected {
@@ -101,6 +111,31 @@ impl Manifest {
             }
         }
         Ok(())
+    }
+}
+
+/// Collects `path = value` for every leaf where `a` and `b` differ.
+fn diff_json(
+    path: &str,
+    a: &serde_json::Value,
+    b: &serde_json::Value,
+    fa: &mut Vec<String>,
+    fb: &mut Vec<String>,
+) {
+    match (a, b) {
+        (serde_json::Value::Object(x), serde_json::Value::Object(y)) => {
+            let keys: std::collections::BTreeSet<&String> = x.keys().chain(y.keys()).collect();
+            for k in keys {
+                let null = serde_json::Value::Null;
+                let (va, vb) = (x.get(k).unwrap_or(&null), y.get(k).unwrap_or(&null));
+                diff_json(&format!("{path}.{k}"), va, vb, fa, fb);
+            }
+        }
+        _ if a != b => {
+            fa.push(format!("{path} = {a}"));
+            fb.push(format!("{path} = {b}"));
+        }
+        _ => {}
     }
 }
 
@@ -404,6 +439,15 @@ mod tests {
             .to_string();
         assert!(
             err.contains("\"darkroom\"") && err.contains("\"point\""),
+            "{err}"
+        );
+        let other = serde_json::json!({"d_model": 16});
+        let err = m
+            .check_compatible(&latest, "test", "darkroom", &other)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("model.d_model = 8") && err.contains("model.d_model = 16"),
             "{err}"
         );
         // Truncate a file: the error names it.
