@@ -98,6 +98,10 @@ pub struct EvalConfig {
     pub pretrain_tasks: Option<PretrainTasks>,
     /// Record every step of trajectory (condition, task) for rendering.
     pub record: Option<(usize, usize)>,
+    /// Task distribution: [`Orientation::Edge`] is the paper's held-out
+    /// evaluation; [`Orientation::Centre`] (the pretraining distribution, on
+    /// unseen seeds) is a diagnostic only.
+    pub orientation: Orientation,
 }
 
 impl EvalConfig {
@@ -287,6 +291,8 @@ pub struct EvalResult {
     pub greedy: bool,
     pub batch: usize,
     pub held_out: HeldOut,
+    /// `edge` (held-out evaluation) or `centre` (in-distribution diagnostic).
+    pub orientation: String,
     /// Episode returns, `[condition][task][episode]`.
     pub returns: Vec<Vec<Vec<f32>>>,
     /// Episode costs, same layout.
@@ -504,9 +510,11 @@ impl EvalResult {
     }
 }
 
-/// The edge-oriented evaluation tasks of `eval_seed`, checked held out.
+/// The evaluation tasks of `eval_seed` (edge-oriented for the paper's
+/// protocol), checked held out from the recorded pretraining tasks.
 pub fn eval_tasks(
     spawn: &SpawnConfig,
+    orientation: Orientation,
     tasks: usize,
     eval_seed: u64,
     pretrain: Option<&PretrainTasks>,
@@ -518,7 +526,7 @@ pub fn eval_tasks(
     }
     let drawn = task_seeds::eval_task_seeds(eval_seed, tasks)?
         .into_iter()
-        .map(|s| Ok((s, sample_task(spawn, Orientation::Edge, s)?)))
+        .map(|s| Ok((s, sample_task(spawn, orientation, s)?)))
         .collect::<Result<Vec<_>, EnvError>>()?;
     let held_out = match pretrain {
         Some(p) => {
@@ -540,8 +548,13 @@ pub fn evaluate(
     on_episodes: &mut dyn FnMut(usize),
 ) -> Result<EvalResult, EvalError> {
     cfg.validate()?;
-    let (tasks, held_out) =
-        eval_tasks(spawn, cfg.tasks, cfg.eval_seed, cfg.pretrain_tasks.as_ref())?;
+    let (tasks, held_out) = eval_tasks(
+        spawn,
+        cfg.orientation,
+        cfg.tasks,
+        cfg.eval_seed,
+        cfg.pretrain_tasks.as_ref(),
+    )?;
     let (nc, nt, k_n) = (cfg.conditions.len(), cfg.tasks, cfg.episodes);
     let total = nc * nt;
     let b = cfg.batch.min(total);
@@ -559,6 +572,7 @@ pub fn evaluate(
         greedy: cfg.greedy,
         batch: b,
         held_out,
+        orientation: cfg.orientation.to_string(),
         returns: vec![vec![Vec::with_capacity(k_n); nt]; nc],
         costs: vec![vec![Vec::with_capacity(k_n); nt]; nc],
         lengths: vec![vec![Vec::with_capacity(k_n); nt]; nc],
@@ -899,6 +913,7 @@ mod tests {
             greedy: false,
             pretrain_tasks: Some(PretrainTasks::centre(0, 1000)),
             record: Some((1, 2)),
+            orientation: Orientation::Edge,
         }
     }
 
@@ -1207,6 +1222,7 @@ mod tests {
             greedy: false,
             batch: 6,
             held_out: HeldOut::SeedRangesOnly,
+            orientation: "edge".into(),
             returns: vec![
                 vec![vec![0.0, 1.0], vec![1.0, 1.0], vec![0.0, 0.0]],
                 vec![vec![0.0, 1.0], vec![1.0, 1.0], vec![1.0, 1.0]],

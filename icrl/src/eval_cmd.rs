@@ -161,6 +161,9 @@ pub struct EvalOptions {
     pub max_episode_steps: Option<usize>,
     /// Show a progress bar.
     pub progress: bool,
+    /// Diagnostic: evaluate on centre-oriented tasks (the pretraining
+    /// distribution, unseen seeds) instead of the held-out edge-oriented ones.
+    pub in_distribution: bool,
     /// The command line, stored in every output file.
     pub command: String,
 }
@@ -420,10 +423,20 @@ fn run_one(
         greedy: opts.greedy,
         pretrain_tasks: loaded.pretrain_tasks.clone(),
         record: record.then_some((0, 0)),
+        orientation: if opts.in_distribution {
+            Orientation::Centre
+        } else {
+            Orientation::Edge
+        },
     };
     cfg.validate()?;
 
-    let protocol = if sweep { "sweep" } else { "figure1" };
+    let protocol = match (sweep, opts.in_distribution) {
+        (false, false) => "figure1",
+        (true, false) => "sweep",
+        (false, true) => "figure1-centre",
+        (true, true) => "sweep-centre",
+    };
     let bar = if opts.progress {
         let bar = ProgressBar::new((cfg.trajectories() * episodes) as u64);
         bar.set_style(
@@ -483,10 +496,11 @@ fn run_one(
         result,
     };
     let stem = opts.out.join(format!(
-        "{}_{}{}",
+        "{}_{}{}{}",
         loaded.method.stem(),
         env,
-        if sweep { "_sweep" } else { "" }
+        if sweep { "_sweep" } else { "" },
+        if opts.in_distribution { "_centre" } else { "" }
     ));
     let json = stem.with_extension("json");
     write_json(&json, &report)?;
@@ -619,14 +633,15 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
             }
         }
     }
+    let centre = if opts.in_distribution { "_centre" } else { "" };
     out.files.extend(plots::figure1(
         &[fig1],
-        &opts.out.join(format!("figure1_{}", opts.env)),
+        &opts.out.join(format!("figure1_{}{}", opts.env, centre)),
     )?);
     if opts.sweep {
         out.files.extend(plots::figure2(
             &[fig2],
-            &opts.out.join(format!("figure2_{}", opts.env)),
+            &opts.out.join(format!("figure2_{}{}", opts.env, centre)),
         )?);
     }
     Ok(out)
@@ -659,9 +674,13 @@ pub fn replot(dirs: &[PathBuf], out: &Path) -> Result<EvalOutputs, EvalCmdError>
             ) else {
                 continue;
             };
+            // In-distribution diagnostics are not the paper's figures.
             let Ok(env) = env.parse::<EnvName>() else {
                 continue;
             };
+            if protocol.ends_with("-centre") {
+                continue;
+            }
             let method = match method {
                 "Eppo" => Method::Eppo,
                 "Ad" => Method::Ad,
@@ -763,7 +782,8 @@ fn render(
             // by MuJoCo from a replay of the recorded actions; without
             // off-screen OpenGL, a drawing from the recorded positions.
             let steps = |k: usize| k < 2 || k + 1 == k_n;
-            let task_value = sample_task(&spawn_config(env), Orientation::Edge, task.seed)?;
+            let orientation: Orientation = report.result.orientation.parse()?;
+            let task_value = sample_task(&spawn_config(env), orientation, task.seed)?;
             let mut sim = safety_envs::SafeDarkMujoco::new(nav.clone())?;
             sim.set_task(&task_value)?;
             match plots::nav_render_animation(&mut sim, rec, task, budget, &steps, 3, path) {
@@ -807,6 +827,7 @@ mod tests {
             max_episode_steps: None,
             progress: false,
             command: "test".into(),
+            in_distribution: false,
         }
     }
 

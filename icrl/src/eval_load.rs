@@ -215,6 +215,7 @@ mod tests {
             max_episode_steps: None,
             progress: false,
             command: "test".into(),
+            in_distribution: false,
         }
     }
 

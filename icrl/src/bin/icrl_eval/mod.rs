@@ -60,6 +60,10 @@ pub struct EvalArgs {
     /// Act with the policy's mode instead of sampling.
     #[arg(long)]
     greedy: bool,
+    /// Diagnostic, not the paper's protocol: evaluate on centre-oriented tasks (the
+    /// pretraining distribution, on unseen seeds); outputs get a `_centre` suffix.
+    #[arg(long)]
+    in_distribution: bool,
     /// Time limit in agent steps (default: the checkpoint's, else the environment's).
     #[arg(long)]
     max_episode_steps: Option<usize>,
@@ -99,6 +103,7 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
         greedy: args.greedy,
         max_episode_steps: args.max_episode_steps,
         progress: true,
+        in_distribution: args.in_distribution,
         command: std::env::args().collect::<Vec<_>>().join(" "),
     };
     let agents = args
