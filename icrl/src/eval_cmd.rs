@@ -602,9 +602,9 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
     // The random policy runs as many episodes as the first agent did.
     let mut first_episodes = None;
     for (i, loaded) in agents.iter_mut().enumerate() {
-        // Record the first trajectory of the first agent (the random policy
-        // comes last, so it is recorded only when it is alone).
-        let record = opts.render && i == 0;
+        // Record the first trajectory of every pretrained agent (the random
+        // policy comes last: recorded only when it is alone).
+        let record = opts.render && (loaded.method != Method::Random || i == 0);
         let mut opts = opts.clone();
         if loaded.method == Method::Random {
             opts.episodes = opts.episodes.or(first_episodes);
