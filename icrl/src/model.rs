@@ -121,8 +121,12 @@ impl Config {
 /// Keys and values of one layer for the positions seen so far.
 #[derive(Debug, Default)]
 struct LayerKv {
-    /// (B, H, T_cached, Dh) each.
-    kv: Option<(Tensor, Tensor)>,
+    /// Key and value buffers, (B, H, max_len, Dh) each, allocated at the first
+    /// step; positions `0..len` are filled. New positions are written in place,
+    /// so a step copies only its own keys and values (no regrowth by `cat`).
+    buf: Option<(Tensor, Tensor)>,
+    /// Positions filled.
+    len: i64,
 }
 
 /// Cached keys and values of every layer: lets acting cost O(T) per step instead
@@ -145,7 +149,8 @@ impl KvCache {
     /// Forgets every cached position (start of new trajectories).
     pub fn reset(&mut self) {
         for layer in &mut self.layers {
-            layer.kv = None;
+            layer.buf = None;
+            layer.len = 0;
         }
         self.len = 0;
     }
@@ -164,7 +169,7 @@ impl KvCache {
     fn batch(&self) -> Option<i64> {
         self.layers
             .first()
-            .and_then(|l| l.kv.as_ref())
+            .and_then(|l| l.buf.as_ref())
             .map(|(k, _)| k.size()[0])
     }
 }
@@ -178,6 +183,7 @@ struct CausalSelfAttention {
     c_proj: nn::Linear,
     n_heads: i64,
     head_dim: i64,
+    max_len: i64,
     attn_dropout: f64,
     resid_dropout: f64,
 }
@@ -190,6 +196,7 @@ impl CausalSelfAttention {
             c_proj: nn::linear(&p / "c_proj", d, d, Default::default()),
             n_heads: cfg.n_heads,
             head_dim: cfg.head_dim(),
+            max_len: cfg.max_len,
             attn_dropout: cfg.attn_dropout,
             resid_dropout: cfg.resid_dropout,
         }
@@ -208,12 +215,18 @@ impl CausalSelfAttention {
         let mut v = heads(&parts[2]);
         let mut past_len = 0;
         if let Some(cache) = cache {
-            if let Some((pk, pv)) = &cache.kv {
-                past_len = pk.size()[2];
-                k = Tensor::cat(&[pk, &k], 2); // (B, H, T_past + T, Dh)
-                v = Tensor::cat(&[pv, &v], 2); // (B, H, T_past + T, Dh)
-            }
-            cache.kv = Some((k.shallow_clone(), v.shallow_clone()));
+            past_len = cache.len;
+            let (kb, vb) = cache.buf.get_or_insert_with(|| {
+                let shape = [b, self.n_heads, self.max_len, self.head_dim]; // (B, H, max_len, Dh)
+                let opts = (k.kind(), k.device());
+                (Tensor::zeros(shape, opts), Tensor::zeros(shape, opts))
+            });
+            // Write the new positions in place, then attend over the filled prefix.
+            kb.narrow(2, past_len, t).copy_(&k);
+            vb.narrow(2, past_len, t).copy_(&v);
+            k = kb.narrow(2, 0, past_len + t); // (B, H, T_past + T, Dh), a view
+            v = vb.narrow(2, 0, past_len + t); // (B, H, T_past + T, Dh), a view
+            cache.len = past_len + t;
         }
         let dropout = if train { self.attn_dropout } else { 0.0 };
         let y = if past_len == 0 {
