@@ -1837,6 +1837,7 @@ pub fn plot_learning_curve(run_dir: &Path, window: usize) -> Result<PathBuf, Epp
             .x_desc("environment steps")
             .y_desc(*y_label)
             .x_labels(5)
+            .x_label_formatter(&|x| format!("{:.0}k", x / 1000.0))
             .draw()
             .map_err(|e| draw_err(e.to_string()))?;
         for (i, (label, points)) in curves.into_iter().enumerate() {
