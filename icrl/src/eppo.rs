@@ -21,7 +21,9 @@
 //! `first_episode_cost`, `last_episode_cost` (per trajectory, averaged: the
 //! in-context signal), `lambda`, `losses/value_loss`, `losses/cost_value_loss`,
 //! `losses/policy_loss`, `losses/entropy`, `losses/grad_norm`, `charts/epsilon`,
-//! `charts/updates_per_s`, `charts/env_steps_per_s`.
+//! `charts/updates_per_s`, `charts/env_steps_per_s`. Losses are averaged over
+//! the round's updates and are `null` in rounds without an update (before
+//! `learning_starts`).
 
 use std::collections::VecDeque;
 use std::path::{Path, PathBuf};
