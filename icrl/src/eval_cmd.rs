@@ -599,19 +599,21 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
         random: None,
     };
     let mut fig2 = fig1.clone();
-    // The random policy runs as many episodes as the first agent did.
-    let mut first_episodes = None;
+    // EPPO before AD (colours and file order); the random policy last, with
+    // as many episodes as the longest evaluation before it.
+    agents.sort_by_key(|a| a.method as u8);
+    let mut longest_episodes: Option<usize> = None;
     for (i, loaded) in agents.iter_mut().enumerate() {
         // Record the first trajectory of every pretrained agent (the random
         // policy comes last: recorded only when it is alone).
         let record = opts.render && (loaded.method != Method::Random || i == 0);
         let mut opts = opts.clone();
         if loaded.method == Method::Random {
-            opts.episodes = opts.episodes.or(first_episodes);
+            opts.episodes = opts.episodes.or(longest_episodes);
         }
         let opts = &opts;
         let report = run_one(loaded, false, opts, record, &mut out.files)?;
-        first_episodes = first_episodes.or(Some(report.episodes));
+        longest_episodes = Some(longest_episodes.unwrap_or(0).max(report.episodes));
         out.lines.push(headline(&report));
         if record && let Some(rec) = &report.result.recording {
             let gif = opts
