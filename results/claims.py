@@ -13,6 +13,8 @@ claim with the numbers and a verdict. Criteria (fixed before looking at data):
   below the mean budget (CTG);
 - faster adaptation (EPPO vs AD): mean return over episodes 1..m, m = the
   smaller K, per task; PASS if EPPO - AD exceeds 2 s.e. (independent samples);
+- robustness (reported, not a verdict): per-task least-squares slope of the
+  episode return and cost against k over all K episodes;
 - budget following: per-task least-squares slope of total return on the CTG
   in the sweep; PASS if above 2 s.e. (EPPO); for AD the paper reports no
   trend, so PASS (paper reproduced) if |slope| is within 2 s.e. of zero.
@@ -54,6 +56,24 @@ def early_returns(r, m):
     return out
 
 
+def slope(xs, ys):
+    mx, my = sum(xs) / len(xs), sum(ys) / len(ys)
+    sxx = sum((x - mx) ** 2 for x in xs)
+    return sum((x - mx) * (y - my) for x, y in zip(xs, ys)) / sxx
+
+
+def per_episode_slopes(r, key):
+    """Per task: least-squares slope of the episode value (averaged over
+    conditions) against k = 1..K; mean and s.e. over tasks."""
+    res = r["result"]
+    k_n, n_c = r["episodes"], len(res["conditions"])
+    out = []
+    for t in range(len(res["tasks"])):
+        ys = [sum(res[key][c][t][k] for c in range(n_c)) / n_c for k in range(k_n)]
+        out.append(slope(list(range(1, k_n + 1)), ys))
+    return mean_se(out)
+
+
 def fmt(ms):
     return f"{ms['mean']:.3f} ± {ms['se']:.3f}"
 
@@ -73,6 +93,10 @@ def main(folders):
               f"gain {fmt(gain)}: {'PASS' if gain['mean'] > 2 * gain['se'] else 'FAIL'}")
         print(f"  cost first {fmt(t['first_cost'])} -> last {fmt(t['last_cost'])}; "
               f"drop {fmt(drop)}: {'PASS' if drop['mean'] > 2 * drop['se'] else 'FAIL'}")
+        if k > 1:
+            (rs, rse), (cs, cse) = per_episode_slopes(r, "returns"), per_episode_slopes(r, "costs")
+            print(f"  robustness: slope over all K episodes, return {rs:+.4f} ± {rse:.4f} per episode, "
+                  f"cost {cs:+.4f} ± {cse:.4f} per episode")
         safe = t["last_cost"]["mean"] <= s["mean_budget"]
         last = s["per_episode"][-1]
         print(f"  last-window cost {t['last_cost']['mean']:.3f} vs mean budget {s['mean_budget']:.2f}: "
