@@ -580,6 +580,10 @@ pub fn evaluate(
         recording: None,
     };
 
+    // libtorch's global generator (used by agents that sample with
+    // `multinomial`) starts from the evaluation seed: results do not depend on
+    // what ran before in the process.
+    tch::manual_seed(cfg.eval_seed as i64);
     // Parameters frozen: nothing below builds a graph or touches an optimizer.
     tch::no_grad(|| -> Result<(), EvalError> {
         for first in (0..total).step_by(b) {
