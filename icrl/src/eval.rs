@@ -98,6 +98,11 @@ pub struct EvalConfig {
     pub pretrain_tasks: Option<PretrainTasks>,
     /// Record every step of trajectory (condition, task) for rendering.
     pub record: Option<(usize, usize)>,
+    /// Reseed libtorch's process-wide generator (used by agents that sample
+    /// with `multinomial`) with this before evaluating, so results do not
+    /// depend on what ran before in the process. The CLI sets it; tests leave
+    /// it `None`, as tests running in parallel share that generator.
+    pub torch_seed: Option<u64>,
     /// Task distribution: [`Orientation::Edge`] is the paper's held-out
     /// evaluation; [`Orientation::Centre`] (the pretraining distribution, on
     /// unseen seeds) is a diagnostic only.
@@ -580,10 +585,9 @@ pub fn evaluate(
         recording: None,
     };
 
-    // libtorch's global generator (used by agents that sample with
-    // `multinomial`) starts from the evaluation seed: results do not depend on
-    // what ran before in the process.
-    tch::manual_seed(cfg.eval_seed as i64);
+    if let Some(seed) = cfg.torch_seed {
+        tch::manual_seed(seed as i64);
+    }
     // Parameters frozen: nothing below builds a graph or touches an optimizer.
     tch::no_grad(|| -> Result<(), EvalError> {
         for first in (0..total).step_by(b) {
@@ -917,6 +921,7 @@ mod tests {
             greedy: false,
             pretrain_tasks: Some(PretrainTasks::centre(0, 1000)),
             record: Some((1, 2)),
+            torch_seed: None,
             orientation: Orientation::Edge,
         }
     }
@@ -932,9 +937,20 @@ mod tests {
 
     impl TinyTorchAgent {
         fn new() -> Self {
-            tch::manual_seed(0);
             let vs = nn::VarStore::new(tch::Device::Cpu);
             let layer = nn::linear(vs.root() / "policy", 2, 5, Default::default());
+            // Fixed weights, independent of libtorch's global generator (which
+            // tests running in parallel share).
+            tch::no_grad(|| {
+                let w: Vec<f32> = (0..10).map(|i| ((i * 7 % 10) as f32 - 4.5) / 5.0).collect();
+                layer
+                    .ws
+                    .shallow_clone()
+                    .copy_(&tch::Tensor::from_slice(&w).view([5, 2]));
+                if let Some(b) = &layer.bs {
+                    let _ = b.shallow_clone().fill_(0.1);
+                }
+            });
             TinyTorchAgent {
                 vs,
                 layer,

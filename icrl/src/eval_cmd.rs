@@ -161,6 +161,9 @@ pub struct EvalOptions {
     pub max_episode_steps: Option<usize>,
     /// Show a progress bar.
     pub progress: bool,
+    /// Reseed libtorch's process-wide generator with `eval_seed` before each
+    /// evaluation (the CLI does; tests, which share it, do not).
+    pub seed_torch: bool,
     /// Diagnostic: evaluate on centre-oriented tasks (the pretraining
     /// distribution, unseen seeds) instead of the held-out edge-oriented ones.
     pub in_distribution: bool,
@@ -423,6 +426,7 @@ fn run_one(
         greedy: opts.greedy,
         pretrain_tasks: loaded.pretrain_tasks.clone(),
         record: record.then_some((0, 0)),
+        torch_seed: opts.seed_torch.then_some(opts.eval_seed),
         orientation: if opts.in_distribution {
             Orientation::Centre
         } else {
@@ -829,6 +833,7 @@ mod tests {
             max_episode_steps: None,
             progress: false,
             command: "test".into(),
+            seed_torch: false,
             in_distribution: false,
         }
     }

@@ -215,6 +215,7 @@ mod tests {
             max_episode_steps: None,
             progress: false,
             command: "test".into(),
+            seed_torch: false,
             in_distribution: false,
         }
     }
@@ -368,6 +369,8 @@ mod tests {
         let mut opts = options(root.join("eval"));
         opts.episodes = Some(3);
         opts.sweep = true;
+        // Greedy: AD samples with libtorch's shared generator otherwise.
+        opts.greedy = true;
         run(vec![agent], &opts).unwrap();
         for name in ["ad_darkroom.json", "ad_darkroom_sweep.json"] {
             let r = report(&root.join("eval").join(name));

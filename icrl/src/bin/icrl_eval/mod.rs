@@ -104,6 +104,7 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
         max_episode_steps: args.max_episode_steps,
         progress: true,
         in_distribution: args.in_distribution,
+        seed_torch: true,
         command: std::env::args().collect::<Vec<_>>().join(" "),
     };
     let agents = args
