@@ -1,38 +1,43 @@
 //! Safe in-context reinforcement learning on top of libtorch.
 //!
+//! Shared parts:
 //! - [`agent`]: the interface a pretrained in-context agent offers (reset, act).
+//! - [`model`]: the one causal transformer (with KV cache) every learner shares.
+//! - [`optim`]: Adam whose moments can be checkpointed.
+//! - [`checkpoint`]: run folders, atomic checkpoints with manifests, metrics (JSONL).
+//! - [`presets`]: built-in TOML presets and `--set key=value` overrides.
+//! - [`task_seeds`]: the split of task seeds between pretraining and evaluation.
+//!
+//! Learners (each one file, read top to bottom):
+//! - [`eppo`]: EPPO, safe reinforcement pretraining (Algorithm 1), and its frozen agent.
+//! - [`ppo_lagrangian`]: PPO-Lagrangian, the learner whose histories supervised pretraining distils.
+//! - [`ad`]: safe supervised pretraining (algorithm distillation with RTG and CTG).
+//!
+//! Data and evaluation:
+//! - [`histories`]: learning histories in HDF5 (DSRL-compatible layout).
+//! - [`dataset`]: learning-history datasets (PPO-Lagrangian or noisy optimal) written to HDF5.
 //! - [`eval`]: in-context evaluation on held-out edge-oriented tasks, budget sweeps.
 //! - [`eval_cmd`]: the `eval` command (checkpoints in, JSON/CSV/figures/GIF out).
 //! - [`eval_load`]: loading EPPO and AD checkpoints for evaluation.
-//! - [`plots`]: the paper's evaluation figures and a SafeDarkRoom animation.
+//! - [`plots`]: the paper's evaluation figures and animations.
 //! - [`stats`]: mean and standard error.
-//! - [`task_seeds`]: the split of task seeds between pretraining and evaluation.
-//! - [`checkpoint`]: run folders, atomic checkpoints with manifests, metrics (JSONL).
-//! - [`eppo`]: EPPO, safe reinforcement pretraining (Algorithm 1), and its frozen agent.
-//! - [`optim`]: Adam whose moments can be checkpointed.
-//! - [`presets`]: built-in TOML presets and `--set key=value` overrides.
-//! - [`model`]: the one causal transformer (with KV cache) every learner shares.
-//! - [`histories`]: learning histories in HDF5 (DSRL-compatible layout).
-//! - [`ppo_lagrangian`]: PPO-Lagrangian, the learner whose histories supervised pretraining distils.
-//! - [`dataset`]: learning-history datasets (PPO-Lagrangian or noisy optimal) written to HDF5.
-//! - [`ad`]: safe supervised pretraining (algorithm distillation with RTG and CTG).
 
+pub mod ad;
 pub mod agent;
 pub mod checkpoint;
+pub mod dataset;
 pub mod eppo;
 pub mod eval;
 pub mod eval_cmd;
 pub mod eval_load;
-pub mod plots;
-pub mod stats;
-pub mod task_seeds;
+pub mod histories;
 pub mod model;
 pub mod optim;
-pub mod presets;
-pub mod histories;
+pub mod plots;
 pub mod ppo_lagrangian;
-pub mod dataset;
-pub mod ad;
+pub mod presets;
+pub mod stats;
+pub mod task_seeds;
 
 #[cfg(test)]
 mod tests {

@@ -45,14 +45,16 @@ const CUDA_LIBS: [(&str, &str); 2] = [
 ];
 
 /// Debian packages every build needs: MuJoCo 2.2.2, OSMesa, libclang (with its
-/// `stddef.h`, without which bindgen fails), HDF5, and g++ for torch-sys.
-const SYSTEM_PACKAGES: [&str; 6] = [
+/// `stddef.h`, without which bindgen fails), HDF5, g++ for torch-sys, and the
+/// DejaVu font the figures are drawn with (plotters' ab_glyph backend).
+const SYSTEM_PACKAGES: [&str; 7] = [
     "libmujoco-dev",
     "libosmesa6-dev",
     "libclang1-14",
     "libclang-common-14-dev",
     "libhdf5-dev",
     "g++",
+    "fonts-dejavu-core",
 ];
 
 /// The folder the libtorch marker names the version in; written last.
