@@ -1321,6 +1321,10 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
     } else {
         indicatif::ProgressBar::hidden()
     };
+    // Without a terminal indicatif draws nothing: print the bar's line to
+    // stderr instead, at most every 30 s, so logs show progress.
+    let log_lines = opts.progress && bar.is_hidden();
+    let mut last_log_line = Instant::now();
     let mut last_ckpt = run.latest_checkpoint()?.unwrap_or_default();
     let started = Instant::now();
     let (start_updates, start_steps) = (learner.updates, learner.env_steps);
@@ -1369,7 +1373,7 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
             "charts/env_steps_per_s": sps,
         });
         metrics.write(&record)?;
-        bar.set_message(format!(
+        let line = format!(
             "{ups:.2} upd/s  lambda {:.3}  return {:.2}  cost {:.2}  Lv {:.3} Lc {:.3} Lp {:.3}",
             learner.lambda,
             round.mean_return,
@@ -1377,7 +1381,15 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
             avg(|s| s.value_loss),
             avg(|s| s.cost_value_loss),
             avg(|s| s.policy_loss)
-        ));
+        );
+        if log_lines && last_log_line.elapsed().as_secs() >= 30 {
+            eprintln!(
+                "update {}/{}  env steps {}  {line}",
+                learner.updates, cfg.total_updates, learner.env_steps
+            );
+            last_log_line = Instant::now();
+        }
+        bar.set_message(line);
     }
     if !last_ckpt.ends_with(format!("step_{}", learner.updates)) {
         last_ckpt = learner.save_checkpoint(&run)?;
