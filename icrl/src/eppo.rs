@@ -44,6 +44,7 @@ use crate::agent::{Actions, AgentError, Conditioning, InContextAgent, StepInput}
 use crate::checkpoint::{CheckpointError, MetricsWriter, RunDir, read_manifest};
 use crate::model::{self, KvCache, ModelError, Transformer};
 use crate::optim::{Adam, AdamConfig};
+use crate::task_seeds::{PretrainTasks, pretrain_task_seed};
 
 // ---------------------------------------------------------------------------
 // Configuration
@@ -898,6 +899,10 @@ pub struct Learner {
     pub lambda: f64,
     pub updates: u64,
     pub env_steps: u64,
+    /// Pretraining tasks drawn so far: task i comes from
+    /// `pretrain_task_seed(cfg.seed, i)`, so checkpoints can record exactly
+    /// which tasks were seen and evaluation can prove its tasks held out.
+    pub tasks_drawn: u64,
     pub rng: ChaCha8Rng,
     pub replay: Replay,
 }
@@ -958,6 +963,7 @@ impl Learner {
             lambda: cfg.lambda_init,
             updates: 0,
             env_steps: 0,
+            tasks_drawn: 0,
             env,
             spec,
             device,
@@ -983,7 +989,9 @@ impl Learner {
         let spawn = spawn_config(self.env);
         let (mut budgets, mut ks, mut seeds) = (vec![0f32; n], vec![0usize; n], vec![0u64; n]);
         for i in 0..n {
-            let task = sample_task(&spawn, Orientation::Centre, self.rng.r#gen())?;
+            let seed = pretrain_task_seed(self.cfg.seed, self.tasks_drawn);
+            self.tasks_drawn += 1;
+            let task = sample_task(&spawn, Orientation::Centre, seed)?;
             venv.set_task(i, &task)?;
             budgets[i] = self.rng.gen_range(self.cfg.ctg_min..=self.cfg.ctg_max);
             ks[i] = self.rng.gen_range(self.cfg.k_min..=self.cfg.k_max);
@@ -1144,6 +1152,7 @@ impl Learner {
             rng_stream: self.rng.get_stream(),
             rng_word_pos: self.rng.get_word_pos().to_string(),
             spec: self.spec.clone(),
+            pretrain_tasks: Some(PretrainTasks::centre(self.cfg.seed, self.tasks_drawn)),
         };
         let config = toml::to_string(&self.cfg).map_err(|e| EppoError::Config(e.to_string()))?;
         let dir = run.write_checkpoint(
@@ -1220,6 +1229,10 @@ impl Learner {
         learner.lambda = state.lambda;
         learner.updates = state.updates;
         learner.env_steps = state.env_steps;
+        // Checkpoints from before tasks were recorded restart the count.
+        learner.tasks_drawn = state
+            .pretrain_tasks
+            .map_or(0, |tasks| tasks.end - tasks.start);
         let mut rng = ChaCha8Rng::from_seed(state.rng_seed);
         rng.set_stream(state.rng_stream);
         rng.set_word_pos(
@@ -1244,6 +1257,25 @@ struct TrainState {
     /// u128 as a decimal string (JSON numbers cannot hold it).
     rng_word_pos: String,
     spec: NetSpec,
+    /// The pretraining tasks seen so far (absent in older checkpoints).
+    #[serde(default)]
+    pretrain_tasks: Option<PretrainTasks>,
+}
+
+/// The pretraining tasks a checkpoint folder records having seen, if it does
+/// (checkpoints written before tasks were recorded return `None`).
+pub fn recorded_pretrain_tasks(dir: &Path) -> Result<Option<PretrainTasks>, EppoError> {
+    let path = dir.join("state.json");
+    let bad = |e: String| {
+        EppoError::Checkpoint(CheckpointError::Invalid {
+            path: path.clone(),
+            problem: e,
+            fix: "point at a complete checkpoints/step_N folder".into(),
+        })
+    };
+    let text = std::fs::read_to_string(&path).map_err(|e| bad(e.to_string()))?;
+    let state: TrainState = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
+    Ok(state.pretrain_tasks)
 }
 
 fn model_manifest(cfg: &EppoConfig, spec: &NetSpec) -> serde_json::Value {
@@ -1971,7 +2003,7 @@ mod tests {
         let batch = make_batch(&trajs, &learner.cfg, &learner.spec, &mut rng, Device::Cpu);
         let mut first = None;
         let mut last = (0.0, 0.0);
-        for _ in 0..150 {
+        for _ in 0..300 {
             let (lv, lc, _, _) =
                 losses(&learner.net, &learner.target, &batch, 0.0, &learner.cfg).unwrap();
             let now = (lv.double_value(&[]), lc.double_value(&[]));

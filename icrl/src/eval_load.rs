@@ -122,6 +122,8 @@ pub fn load_checkpoint(path: &Path, env: EnvName) -> Result<LoadedAgent, EvalCmd
             let agent = EppoAgent::load(&ckpt, tch::Device::cuda_if_available())
                 .map_err(|e| bad(&ckpt, e.to_string()))?;
             let cfg = agent.config().clone();
+            let pretrain_tasks = crate::eppo::recorded_pretrain_tasks(&ckpt)
+                .map_err(|e| bad(&ckpt, e.to_string()))?;
             let context = ContextLimit {
                 max_episode_steps: cfg.max_episode_steps,
                 max_len: cfg.model.max_len.max(0) as usize,
@@ -130,9 +132,9 @@ pub fn load_checkpoint(path: &Path, env: EnvName) -> Result<LoadedAgent, EvalCmd
                 method: Method::Eppo,
                 agent: Box::new(agent),
                 checkpoint: Some(ckpt.clone()),
-                // EPPO draws its pretraining tasks from random seeds it does
-                // not record: only the seed-range/orientation split applies.
-                pretrain_tasks: None,
+                // Checkpoints record the tasks they pretrained on (older ones
+                // do not: then only the seed-range/orientation split applies).
+                pretrain_tasks,
                 budget_range: Some(BudgetRange {
                     low: cfg.ctg_min,
                     high: cfg.ctg_max,
@@ -291,6 +293,11 @@ mod tests {
         assert!(e.contains("trained on \"darkroom\""), "{e}");
         let agent = load_checkpoint(&trained.run_dir, EnvName::DarkRoom).unwrap();
         assert_eq!(agent.method, Method::Eppo);
+        // One round of 2 trajectories drew 2 recorded pretraining tasks.
+        assert_eq!(
+            agent.pretrain_tasks,
+            Some(crate::task_seeds::PretrainTasks::centre(0, 2))
+        );
         assert_eq!(
             agent.context,
             Some(ContextLimit {
@@ -312,6 +319,13 @@ mod tests {
         assert_eq!(
             (r["episodes"].as_u64(), r["max_episode_steps"].as_u64()),
             (Some(2), Some(6))
+        );
+        // Every evaluation task was compared with the recorded pretraining tasks.
+        assert_eq!(
+            r["result"]["held_out"]["Checked"]["end"].as_u64(),
+            r["result"]["held_out"]["Checked"]["start"]
+                .as_u64()
+                .map(|s| s + 2)
         );
         let r = report(&root.join("eval/random_darkroom.json"));
         assert_eq!(
