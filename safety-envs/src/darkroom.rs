@@ -205,17 +205,15 @@ impl CmdpEnv for SafeDarkRoom {
         self.elapsed += 1;
         let at_goal = self.row == self.task.goal.row && self.col == self.task.goal.col;
         let on_obstacle = self.is_obstacle[self.row * self.config.grid_size + self.col];
-        let terminated = at_goal;
-        // Truncation only when the goal did not end the episode on this step.
-        let truncated = !terminated && self.elapsed >= self.config.max_episode_steps;
-        self.done = terminated || truncated;
+        let outcome = StepOutcome::goal_task(
+            at_goal,
+            on_obstacle,
+            self.elapsed,
+            self.config.max_episode_steps,
+        );
+        self.done = outcome.done();
         self.write_obs(obs);
-        Ok(StepOutcome {
-            reward: if at_goal { 1.0 } else { 0.0 },
-            cost: if on_obstacle { 1.0 } else { 0.0 },
-            terminated,
-            truncated,
-        })
+        Ok(outcome)
     }
 
     fn elapsed_steps(&self) -> usize {

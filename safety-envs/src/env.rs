@@ -54,6 +54,18 @@ impl StepOutcome {
     pub fn done(&self) -> bool {
         self.terminated || self.truncated
     }
+
+    /// The rule every goal task here shares: reward 1 and termination on
+    /// reaching the goal, cost 1 for a step in a hazard, truncation at the
+    /// time limit only when the goal did not end the episode on this step.
+    pub fn goal_task(at_goal: bool, in_hazard: bool, elapsed: usize, time_limit: usize) -> Self {
+        StepOutcome {
+            reward: if at_goal { 1.0 } else { 0.0 },
+            cost: if in_hazard { 1.0 } else { 0.0 },
+            terminated: at_goal,
+            truncated: !at_goal && elapsed >= time_limit,
+        }
+    }
 }
 
 /// A constrained MDP with a goal, hazards and a time limit.

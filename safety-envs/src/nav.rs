@@ -581,17 +581,16 @@ impl CmdpEnv for SafeDarkMujoco {
         self.elapsed += 1;
         let [x, y] = self.robot_xy();
         let (dx, dy) = (x - self.goal_xy[0], y - self.goal_xy[1]);
-        let terminated = dx * dx + dy * dy <= self.config.goal_radius * self.config.goal_radius;
-        // Truncation only when the goal did not end the episode on this step.
-        let truncated = !terminated && self.elapsed >= self.config.max_episode_steps;
-        self.done = terminated || truncated;
+        let at_goal = dx * dx + dy * dy <= self.config.goal_radius * self.config.goal_radius;
+        let outcome = StepOutcome::goal_task(
+            at_goal,
+            hit_hazard,
+            self.elapsed,
+            self.config.max_episode_steps,
+        );
+        self.done = outcome.done();
         self.write_obs(obs);
-        Ok(StepOutcome {
-            reward: if terminated { 1.0 } else { 0.0 },
-            cost: if hit_hazard { 1.0 } else { 0.0 },
-            terminated,
-            truncated,
-        })
+        Ok(outcome)
     }
 
     fn elapsed_steps(&self) -> usize {
