@@ -1909,12 +1909,13 @@ pub fn plot_learning_curve(run_dir: &Path, window: usize) -> Result<PathBuf, Epp
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use crate::model::Positions;
 
-    /// A tiny configuration: trajectories of 2 episodes of 6 steps.
-    fn tiny() -> EppoConfig {
+    /// A tiny configuration: trajectories of 2 episodes of 6 steps (also
+    /// used by the evaluation tests).
+    pub(crate) fn tiny() -> EppoConfig {
         let mut table = crate::presets::preset_table("eppo", "darkroom", "quick").unwrap();
         let sets = [
             "max_episode_steps=6",

@@ -255,28 +255,13 @@ mod tests {
     #[test]
     fn eppo_checkpoint_is_evaluated_within_its_context_and_refused_elsewhere() {
         let root = std::env::temp_dir().join(format!("icrl-eval-load-eppo-{}", std::process::id()));
-        let mut table = crate::presets::preset_table("eppo", "darkroom", "quick").unwrap();
-        let sets = [
-            "max_episode_steps=6",
-            "k_min=2",
-            "k_max=2",
-            "n_envs=2",
-            "batch_size=2",
-            "encoder_hidden=16",
-            "head_hidden=16",
-            "model.d_model=16",
-            "model.n_heads=2",
-            "model.n_layers=1",
-            "model.d_ff=32",
-            "model.max_len=12",
-            "total_updates=2",
-            "updates_per_round=2",
-            "learning_starts=0",
-            "checkpoint_every=2",
-        ]
-        .map(String::from);
-        crate::presets::apply_overrides(&mut table, &sets).unwrap();
-        let cfg: EppoConfig = crate::presets::resolve("tiny", table).unwrap();
+        // One round: 2 trajectories (2 episodes of 6 steps), then 2 updates.
+        let cfg = EppoConfig {
+            n_envs: 2,
+            batch_size: 2,
+            total_updates: 2,
+            ..crate::eppo::tests::tiny()
+        };
         let trained = crate::eppo::train(&PretrainOptions {
             env: EnvName::DarkRoom,
             cfg,
