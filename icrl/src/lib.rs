@@ -7,6 +7,8 @@
 //! - [`checkpoint`]: run folders, atomic checkpoints with manifests, metrics (JSONL).
 //! - [`presets`]: built-in TOML presets and `--set key=value` overrides.
 //! - [`task_seeds`]: the split of task seeds between pretraining and evaluation.
+//! - [`guard`]: setting ranges, finite-weight checks and the memory estimate.
+//! - [`stop`]: graceful stop on the first SIGINT/SIGTERM.
 //!
 //! Learners (each one file, read top to bottom):
 //! - [`eppo`]: EPPO, safe reinforcement pretraining (Algorithm 1), and its frozen agent.
@@ -30,6 +32,7 @@ pub mod eppo;
 pub mod eval;
 pub mod eval_cmd;
 pub mod eval_load;
+pub mod guard;
 pub mod histories;
 pub mod model;
 pub mod optim;
@@ -37,6 +40,7 @@ pub mod plots;
 pub mod ppo_lagrangian;
 pub mod presets;
 pub mod stats;
+pub mod stop;
 pub mod task_seeds;
 
 #[cfg(test)]

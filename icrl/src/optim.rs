@@ -11,6 +11,22 @@ use std::path::Path;
 
 use tch::{Kind, Tensor, nn::VarStore};
 
+/// A loss or gradient norm that is NaN or infinite: the step was not taken.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum NonFinite {
+    Loss(f64),
+    Gradient(f64),
+}
+
+impl std::fmt::Display for NonFinite {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            NonFinite::Loss(v) => write!(f, "the loss is {v}"),
+            NonFinite::Gradient(v) => write!(f, "the gradient norm is {v}"),
+        }
+    }
+}
+
 /// Adam's hyperparameters.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct AdamConfig {
@@ -73,8 +89,24 @@ impl Adam {
     }
 
     /// Backpropagates `loss`, clips the global gradient norm and applies one
-    /// Adam step. Returns the gradient norm before clipping.
+    /// Adam step. Returns the gradient norm before clipping (NaN, with no
+    /// step taken, when the loss or a gradient is not finite: learners use
+    /// [`Adam::try_backward_step`] to stop on that).
     pub fn backward_step(&mut self, loss: &Tensor) -> f64 {
+        match self.try_backward_step(loss) {
+            Ok(norm) => norm,
+            Err(_) => f64::NAN,
+        }
+    }
+
+    /// [`Adam::backward_step`] that refuses to step when the loss or the
+    /// gradient norm is NaN or infinite: the parameters and moments stay as
+    /// they were, and the error says which was not finite.
+    pub fn try_backward_step(&mut self, loss: &Tensor) -> Result<f64, NonFinite> {
+        let loss_value = loss.double_value(&[]);
+        if !loss_value.is_finite() {
+            return Err(NonFinite::Loss(loss_value));
+        }
         self.zero_grad();
         loss.backward();
         let grads: Vec<Tensor> = self.params.iter().map(|(_, p, _, _)| p.grad()).collect();
@@ -91,6 +123,10 @@ impl Adam {
                 .sqrt()
                 .double_value(&[])
         };
+        if !norm.is_finite() {
+            self.zero_grad();
+            return Err(NonFinite::Gradient(norm));
+        }
         let scale = match self.cfg.grad_clip {
             Some(c) if c > 0.0 && norm > c => c / (norm + 1e-6),
             _ => 1.0,
@@ -114,7 +150,7 @@ impl Adam {
                 let _ = p.g_sub_(&(&*m / denom * step_size));
             }
         });
-        norm
+        Ok(norm)
     }
 
     /// Writes the moments (`m/<name>`, `v/<name>`) and the step count
@@ -130,14 +166,23 @@ impl Adam {
     }
 
     /// Reads moments written by [`Adam::save`]; every variable must be present
-    /// with its shape, or the error names the first that is not.
+    /// with its shape and finite values (second moments non-negative), or the
+    /// error names the first that is not.
     pub fn load(&mut self, path: &Path) -> Result<(), String> {
         let loaded = Tensor::read_safetensors(path).map_err(|e| e.to_string())?;
         let map: BTreeMap<String, Tensor> = loaded.into_iter().collect();
         let step = map
             .get("step")
-            .ok_or_else(|| "no `step` entry".to_string())?
-            .int64_value(&[0]);
+            .ok_or_else(|| "no `step` entry".to_string())?;
+        let step = if step.numel() == 1 {
+            step.f_int64_value(&[0])
+                .map_err(|e| format!("`step`: {e}"))?
+        } else {
+            return Err(format!("`step` holds {} values, expected 1", step.numel()));
+        };
+        if step < 0 {
+            return Err(format!("`step` is {step}, expected 0 or more"));
+        }
         tch::no_grad(|| {
             for (name, p, m, v) in &mut self.params {
                 for (prefix, slot) in [("m", &mut *m), ("v", &mut *v)] {
@@ -148,6 +193,15 @@ impl Adam {
                             "`{key}` has shape {:?}, the model has {:?}",
                             t.size(),
                             p.size()
+                        ));
+                    }
+                    let t = t.to_kind(tch::Kind::Float);
+                    let finite = t.isfinite().all().int64_value(&[]) == 1;
+                    let sign_ok = prefix == "m" || t.ge(0.0).all().int64_value(&[]) == 1;
+                    if !(finite && sign_ok) {
+                        return Err(format!(
+                            "`{key}` holds NaN, infinite{} values",
+                            if prefix == "v" { " or negative" } else { "" }
                         ));
                     }
                     slot.copy_(&t.to_device(p.device()));
@@ -184,6 +238,39 @@ mod tests {
             opt.backward_step(&x.square().sum(Kind::Float));
         }
         assert!(x.abs().max().double_value(&[]) < 0.1);
+    }
+
+    #[test]
+    fn a_non_finite_loss_or_gradient_takes_no_step() {
+        let vs = nn::VarStore::new(Device::Cpu);
+        let x = vs.root().var("x", &[2], nn::Init::Const(0.0));
+        let cfg = AdamConfig {
+            lr: 0.1,
+            beta1: 0.9,
+            beta2: 0.99,
+            eps: 1e-8,
+            grad_clip: Some(1.0),
+        };
+        let mut opt = Adam::new(&vs, cfg);
+        let e = opt
+            .try_backward_step(&(x.sum(Kind::Float) * f64::NAN))
+            .unwrap_err();
+        assert!(matches!(e, NonFinite::Loss(v) if v.is_nan()), "{e}");
+        // sqrt at 0: the loss is 0 but its gradient is infinite.
+        let e = opt
+            .try_backward_step(&x.sqrt().sum(Kind::Float))
+            .unwrap_err();
+        assert!(
+            matches!(e, NonFinite::Gradient(v) if v.is_infinite()),
+            "{e}"
+        );
+        assert_eq!(e.to_string(), "the gradient norm is inf");
+        assert_eq!(opt.step_count(), 0, "no step was taken");
+        assert_eq!(Vec::<f32>::try_from(&x).unwrap(), vec![0.0, 0.0]);
+        assert!(
+            opt.try_backward_step(&(&x - 1.0).square().sum(Kind::Float))
+                .is_ok()
+        );
     }
 
     #[test]
