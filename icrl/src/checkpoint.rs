@@ -8,8 +8,13 @@
 //! - `checkpoints/step_N/`: one folder per checkpoint, written atomically
 //!   (filled under `checkpoints/.tmp_step_N/`, then renamed), holding the
 //!   learner's files and a `manifest.json` naming the method, environment,
-//!   model shape, format version and the size of every file, so a truncated
-//!   or foreign checkpoint is refused with an error that names the file.
+//!   model shape, format version, and the size and SHA-256 of every file, so
+//!   a truncated, altered or foreign checkpoint is refused with an error that
+//!   names the file.
+//!
+//! Run folders are created exclusively: two runs started in the same second
+//! with the same env, method and seed get `..._{time}` and `..._{time}_2`,
+//! never one shared folder.
 
 use std::collections::BTreeMap;
 use std::fs;
@@ -17,6 +22,7 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
+use sha2::{Digest, Sha256};
 use thiserror::Error;
 
 /// Version of the checkpoint layout; bumped when files or their meaning change.
@@ -72,6 +78,23 @@ pub struct Manifest {
     pub updates: u64,
     /// Size in bytes of every other file in the folder.
     pub files: BTreeMap<String, u64>,
+    /// SHA-256 (lower-case hex) of every other file in the folder. Empty in
+    /// checkpoints written before checksums were recorded: those load with a
+    /// warning that their bytes cannot be verified.
+    #[serde(default)]
+    pub sha256: BTreeMap<String, String>,
+}
+
+/// SHA-256 of a file, lower-case hex.
+pub fn sha256_file(path: &Path) -> Result<String, CheckpointError> {
+    let mut file = fs::File::open(path).map_err(io(path))?;
+    let mut hasher = Sha256::new();
+    std::io::copy(&mut file, &mut hasher).map_err(io(path))?;
+    Ok(hasher
+        .finalize()
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect())
 }
 
 impl Manifest {
@@ -139,8 +162,9 @@ fn diff_json(
     }
 }
 
-/// Reads and verifies a checkpoint folder's manifest: the format version, and
-/// that every listed file exists with the recorded size (catches truncation).
+/// Reads and verifies a checkpoint folder's manifest: the format version,
+/// that every listed file exists with the recorded size (catches truncation)
+/// and, where recorded, its SHA-256 (catches altered bytes).
 pub fn read_manifest(dir: &Path) -> Result<Manifest, CheckpointError> {
     let path = dir.join(MANIFEST);
     let text = fs::read_to_string(&path).map_err(|e| CheckpointError::Invalid {
@@ -184,6 +208,35 @@ pub fn read_manifest(dir: &Path) -> Result<Manifest, CheckpointError> {
             });
         }
     }
+    if manifest.sha256.is_empty() {
+        eprintln!(
+            "warning: {}: written before checkpoints recorded checksums; its bytes cannot be verified",
+            path.display()
+        );
+    } else {
+        for name in manifest.files.keys() {
+            let file = dir.join(name);
+            let Some(want) = manifest.sha256.get(name) else {
+                return Err(CheckpointError::Invalid {
+                    path: path.clone(),
+                    problem: format!("no SHA-256 recorded for {name}"),
+                    fix:
+                        "the manifest is damaged: resume from an earlier checkpoints/step_N folder"
+                            .into(),
+                });
+            };
+            let got = sha256_file(&file)?;
+            if got != *want {
+                return Err(CheckpointError::Invalid {
+                    path: file,
+                    problem: format!(
+                        "SHA-256 {got} differs from the manifest's {want} (the bytes were altered or damaged)"
+                    ),
+                    fix: "resume from (or evaluate) an earlier checkpoints/step_N folder".into(),
+                });
+            }
+        }
+    }
     Ok(manifest)
 }
 
@@ -219,16 +272,44 @@ fn utc_stamp() -> String {
 }
 
 impl RunDir {
-    /// Creates `root/{env}__{method}__{seed}__{time}/checkpoints/`.
+    /// Creates `root/{env}__{method}__{seed}__{time}/checkpoints/`. The run
+    /// folder itself is made with `create_dir` (which fails if it exists), so
+    /// two runs never share one: on a collision the next free suffix
+    /// (`_2`, `_3`, ...) is taken.
     pub fn create(
         root: &Path,
         env: &str,
         method: &str,
         seed: u64,
     ) -> Result<Self, CheckpointError> {
-        let path = root.join(format!("{env}__{method}__{seed}__{}", utc_stamp()));
-        fs::create_dir_all(path.join("checkpoints")).map_err(io(&path))?;
-        Ok(RunDir { path })
+        Self::create_named(root, &format!("{env}__{method}__{seed}__{}", utc_stamp()))
+    }
+
+    /// [`RunDir::create`] with the base name given.
+    pub fn create_named(root: &Path, base: &str) -> Result<Self, CheckpointError> {
+        fs::create_dir_all(root).map_err(io(root))?;
+        for n in 1..10_000u32 {
+            let name = if n == 1 {
+                base.to_string()
+            } else {
+                format!("{base}_{n}")
+            };
+            let path = root.join(name);
+            match fs::create_dir(&path) {
+                Ok(()) => {
+                    let ck = path.join("checkpoints");
+                    fs::create_dir(&ck).map_err(io(&ck))?;
+                    return Ok(RunDir { path });
+                }
+                Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => continue,
+                Err(e) => return Err(io(&path)(e)),
+            }
+        }
+        Err(CheckpointError::Invalid {
+            path: root.join(base),
+            problem: "9999 run folders of this name exist already".into(),
+            fix: "clean up the runs folder or pass another --out".into(),
+        })
     }
 
     /// Opens an existing run folder.
@@ -326,10 +407,13 @@ impl RunDir {
         fs::create_dir_all(&tmp).map_err(io(&tmp))?;
         write(&tmp)?;
         let mut files = BTreeMap::new();
+        let mut sha256 = BTreeMap::new();
         for entry in fs::read_dir(&tmp).map_err(io(&tmp))? {
             let entry = entry.map_err(io(&tmp))?;
             let len = entry.metadata().map_err(io(&entry.path()))?.len();
-            files.insert(entry.file_name().to_string_lossy().into_owned(), len);
+            let name = entry.file_name().to_string_lossy().into_owned();
+            sha256.insert(name.clone(), sha256_file(&entry.path())?);
+            files.insert(name, len);
         }
         let manifest = Manifest {
             format_version: FORMAT_VERSION,
@@ -338,6 +422,7 @@ impl RunDir {
             model,
             updates,
             files,
+            sha256,
         };
         let mpath = tmp.join(MANIFEST);
         let text =
@@ -383,11 +468,55 @@ impl RunDir {
     }
 }
 
+/// The sentence of a "training stopped" error that names the last good
+/// checkpoint (or says there is none yet) and the fix.
+pub fn last_good(checkpoint: &Option<PathBuf>, fix: &str) -> String {
+    match checkpoint {
+        Some(c) => format!(
+            "The last good checkpoint is {} (resume from it with --resume and {fix})",
+            c.display()
+        ),
+        None => format!("No checkpoint had been written yet: start again and {fix}"),
+    }
+}
+
 /// Appends one JSON object per line to `metrics.jsonl`.
 #[derive(Debug)]
 pub struct MetricsWriter {
     path: PathBuf,
     file: fs::File,
+}
+
+/// Drops the records of `metrics.jsonl` written after the checkpoint a run
+/// resumes from (those whose `key`, e.g. `updates`, exceeds `updates`), so no
+/// update is counted twice. Lines that are not JSON (a line cut by a kill)
+/// are dropped too. Returns how many lines were dropped.
+pub fn truncate_metrics(path: &Path, key: &str, updates: u64) -> Result<usize, CheckpointError> {
+    let text = match fs::read_to_string(path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(0),
+        Err(e) => return Err(io(path)(e)),
+    };
+    let mut kept = String::with_capacity(text.len());
+    let mut dropped = 0;
+    for line in text.lines() {
+        let keep = serde_json::from_str::<serde_json::Value>(line)
+            .ok()
+            .and_then(|v| v.get(key).and_then(serde_json::Value::as_u64))
+            .is_some_and(|u| u <= updates);
+        if keep {
+            kept.push_str(line);
+            kept.push('\n');
+        } else {
+            dropped += 1;
+        }
+    }
+    if dropped > 0 {
+        let tmp = path.with_extension("jsonl.tmp");
+        fs::write(&tmp, kept).map_err(io(&tmp))?;
+        fs::rename(&tmp, path).map_err(io(path))?;
+    }
+    Ok(dropped)
 }
 
 impl MetricsWriter {
@@ -458,5 +587,104 @@ mod tests {
         assert_eq!(ckpt, latest);
         assert!(RunDir::resolve_resume(&root).is_err());
         fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn altered_bytes_of_the_same_size_are_caught_by_the_checksum() {
+        let root = std::env::temp_dir().join(format!("icrl-ckpt-sha-{}", std::process::id()));
+        let run = RunDir::create(&root, "darkroom", "test", 3).unwrap();
+        let dir = run
+            .write_checkpoint(1, "test", "darkroom", serde_json::json!({}), 0, |dir| {
+                fs::write(dir.join("model.safetensors"), vec![7u8; 256]).map_err(io(dir))
+            })
+            .unwrap();
+        let m = read_manifest(&dir).unwrap();
+        assert_eq!(m.sha256.len(), 1);
+        assert_eq!(
+            m.sha256["model.safetensors"],
+            sha256_file(&dir.join("model.safetensors")).unwrap()
+        );
+        // Same size, one byte replaced: the size check passes, the hash does not.
+        let mut bytes = fs::read(dir.join("model.safetensors")).unwrap();
+        bytes[100] ^= 0xff;
+        fs::write(dir.join("model.safetensors"), &bytes).unwrap();
+        let err = read_manifest(&dir).unwrap_err().to_string();
+        assert!(
+            err.contains("model.safetensors") && err.contains("SHA-256") && err.contains("altered"),
+            "{err}"
+        );
+        // A manifest that lists a file without its checksum is damaged.
+        let mut m2 = m.clone();
+        m2.files.insert("extra.bin".into(), 0);
+        fs::write(dir.join("extra.bin"), b"").unwrap();
+        fs::write(dir.join(MANIFEST), serde_json::to_string(&m2).unwrap()).unwrap();
+        let err = read_manifest(&dir).unwrap_err().to_string();
+        assert!(err.contains("no SHA-256 recorded for extra.bin"), "{err}");
+        fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn racing_creators_never_share_a_run_folder() {
+        let root = std::env::temp_dir().join(format!("icrl-ckpt-race-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&root);
+        // Eight threads, released together, all asking for the same name.
+        let barrier = std::sync::Arc::new(std::sync::Barrier::new(8));
+        let handles: Vec<_> = (0..8)
+            .map(|_| {
+                let (root, barrier) = (root.clone(), barrier.clone());
+                std::thread::spawn(move || {
+                    barrier.wait();
+                    RunDir::create_named(&root, "darkroom__eppo__0__20260101T000000")
+                        .unwrap()
+                        .path
+                })
+            })
+            .collect();
+        let mut paths: Vec<PathBuf> = handles.into_iter().map(|h| h.join().unwrap()).collect();
+        paths.sort();
+        paths.dedup();
+        assert_eq!(
+            paths.len(),
+            8,
+            "every creator got its own folder: {paths:?}"
+        );
+        assert!(paths.contains(&root.join("darkroom__eppo__0__20260101T000000")));
+        assert!(paths.contains(&root.join("darkroom__eppo__0__20260101T000000_8")));
+        assert!(paths.iter().all(|p| p.join("checkpoints").is_dir()));
+        fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn resuming_drops_metrics_written_after_the_checkpoint() {
+        let dir = std::env::temp_dir().join(format!("icrl-ckpt-metrics-{}", std::process::id()));
+        fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("metrics.jsonl");
+        let mut w = MetricsWriter::open(&path).unwrap();
+        for u in [10u64, 20, 30, 40] {
+            w.write(&serde_json::json!({"updates": u, "env_steps": u * 7}))
+                .unwrap();
+        }
+        drop(w);
+        // A line cut by a kill at the end.
+        let mut f = fs::OpenOptions::new().append(true).open(&path).unwrap();
+        f.write_all(b"{\"updates\": 5").unwrap();
+        drop(f);
+        assert_eq!(truncate_metrics(&path, "updates", 20).unwrap(), 3);
+        let text = fs::read_to_string(&path).unwrap();
+        let kept: Vec<u64> = text
+            .lines()
+            .map(|l| {
+                serde_json::from_str::<serde_json::Value>(l).unwrap()["updates"]
+                    .as_u64()
+                    .unwrap()
+            })
+            .collect();
+        assert_eq!(kept, vec![10, 20]);
+        assert_eq!(truncate_metrics(&path, "updates", 20).unwrap(), 0);
+        assert_eq!(
+            truncate_metrics(&dir.join("none.jsonl"), "updates", 0).unwrap(),
+            0
+        );
+        fs::remove_dir_all(&dir).unwrap();
     }
 }
