@@ -149,24 +149,84 @@ pub enum EppoError {
     Torch(#[from] tch::TchError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
+    /// A loss or gradient became NaN or infinite: the update was not applied.
+    #[error(
+        "update {update}: {what}; training stopped without applying it. {}",
+        crate::checkpoint::last_good(.checkpoint, "lower lr, or check the settings")
+    )]
+    NonFinite {
+        update: u64,
+        what: String,
+        checkpoint: Option<PathBuf>,
+    },
+    /// Stopped by SIGINT/SIGTERM after writing a checkpoint.
+    #[error("interrupted after update {updates}: checkpoint written to {}", .checkpoint.display())]
+    Interrupted { checkpoint: PathBuf, updates: u64 },
 }
 
 impl EppoConfig {
-    /// Checks the values that would otherwise fail deep inside training.
+    /// Checks the values that would otherwise fail deep inside training:
+    /// every count at least 1, every number finite and in its range (named
+    /// in the error), and the sizes that must fit together.
     pub fn validate(&self) -> Result<(), EppoError> {
+        use crate::guard::{Range, check_counts, check_numbers};
         let bad = |m: String| Err(EppoError::Config(m));
         self.model.validate()?;
+        check_counts(&[
+            ("max_episode_steps", self.max_episode_steps as i128),
+            ("k_min", self.k_min as i128),
+            ("k_max", self.k_max as i128),
+            ("n_envs", self.n_envs as i128),
+            ("env_threads", self.env_threads as i128),
+            ("replay_capacity", self.replay_capacity as i128),
+            ("encoder_hidden", i128::from(self.encoder_hidden)),
+            ("head_hidden", i128::from(self.head_hidden)),
+            ("n_critics", i128::from(self.n_critics)),
+            ("batch_size", self.batch_size as i128),
+            ("total_updates", i128::from(self.total_updates)),
+            ("updates_per_round", i128::from(self.updates_per_round)),
+            ("checkpoint_every", i128::from(self.checkpoint_every)),
+        ])
+        .or_else(bad)?;
+        if self.torch_threads < 0 {
+            return bad(format!(
+                "torch_threads = {}: must be 0 (libtorch's default) or more",
+                self.torch_threads
+            ));
+        }
+        check_numbers(&[
+            ("ctg_min", f64::from(self.ctg_min), Range::NON_NEGATIVE),
+            ("ctg_max", f64::from(self.ctg_max), Range::POSITIVE),
+            ("gamma", self.gamma, Range::UNIT_OPEN_HIGH),
+            ("tau", self.tau, Range::UNIT),
+            ("lr", self.lr, Range::UNIT_OPEN_LOW),
+            ("beta1", self.beta1, Range::UNIT_OPEN_HIGH),
+            ("beta2", self.beta2, Range::UNIT_OPEN_HIGH),
+            ("adam_eps", self.adam_eps, Range::UNIT_OPEN_LOW),
+            ("grad_clip", self.grad_clip, Range::POSITIVE),
+            ("lambda_lr", self.lambda_lr, Range::NON_NEGATIVE),
+            ("lambda_max", self.lambda_max, Range::NON_NEGATIVE),
+            ("lambda_init", self.lambda_init, Range::NON_NEGATIVE),
+            ("critic_weight", self.critic_weight, Range::POSITIVE),
+            ("entropy_coef", self.entropy_coef, Range::NON_NEGATIVE),
+            // Scaled rewards go into float32 tokens: keep them far from overflow.
+            (
+                "reward_scale",
+                self.reward_scale,
+                Range::new(0.0, true, 1e6, false),
+            ),
+            ("eps_start", self.eps_start, Range::UNIT),
+            ("eps_end", self.eps_end, Range::UNIT),
+        ])
+        .or_else(bad)?;
         if self.k_min == 0 || self.k_min > self.k_max {
             return bad(format!(
                 "need 1 <= k_min <= k_max, got k_min = {}, k_max = {}",
                 self.k_min, self.k_max
             ));
         }
-        if self.max_episode_steps == 0 {
-            return bad("max_episode_steps must be positive".into());
-        }
-        let longest = self.k_max * self.max_episode_steps;
-        if longest as i64 > self.model.max_len {
+        let longest = self.k_max.saturating_mul(self.max_episode_steps);
+        if longest as u128 > self.model.max_len as u128 {
             return bad(format!(
                 "a trajectory of k_max * max_episode_steps = {} * {} = {longest} steps exceeds model.max_len = {}",
                 self.k_max, self.max_episode_steps, self.model.max_len
@@ -178,25 +238,7 @@ impl EppoConfig {
                 self.ctg_min, self.ctg_max
             ));
         }
-        for (name, v) in [
-            ("n_envs", self.n_envs),
-            ("env_threads", self.env_threads),
-            ("batch_size", self.batch_size),
-        ] {
-            if v == 0 {
-                return bad(format!("{name} must be positive"));
-            }
-        }
-        if self.n_critics < 1 {
-            return bad(format!("n_critics = {} must be at least 1", self.n_critics));
-        }
-        if !(0.0..1.0).contains(&self.gamma) || !(0.0..=1.0).contains(&self.tau) {
-            return bad(format!(
-                "need gamma in [0, 1) and tau in [0, 1]; got {} and {}",
-                self.gamma, self.tau
-            ));
-        }
-        if self.lambda_max < 0.0 || self.lambda_init < 0.0 || self.lambda_init > self.lambda_max {
+        if self.lambda_init > self.lambda_max {
             return bad(format!(
                 "need 0 <= lambda_init <= lambda_max; got {} and {}",
                 self.lambda_init, self.lambda_max
@@ -230,6 +272,55 @@ pub fn parse_device(name: &str) -> Result<Device, EppoError> {
             "device = {other:?}: expected cpu or cuda"
         ))),
     }
+}
+
+/// What a run with `cfg` on spaces `spec` will allocate, by part (checked
+/// against the machine's memory before anything is built). Parameters count
+/// the online and target networks, their gradients and Adam's two moments;
+/// one batch's activations are the transformer's saved tensors for
+/// `batch_size` sequences of `max_len` steps (plus the target's forward); the
+/// acting cache holds keys and values of `n_envs` trajectories.
+pub fn memory_estimate(cfg: &EppoConfig, spec: &NetSpec) -> crate::guard::MemoryEstimate {
+    use crate::guard::{transformer_activation_bytes, transformer_parameters};
+    let f = |x: usize| x as f64;
+    let (d, eh, hh) = (
+        cfg.model.d_model as f64,
+        cfg.encoder_hidden as f64,
+        cfg.head_hidden as f64,
+    );
+    let a = f(spec.act_flat());
+    let (actor_out, critic_in, critic_out) = match spec.n_actions {
+        Some(_) => (a, d, cfg.n_critics as f64 * a),
+        None => (2.0 * a, d + a, cfg.n_critics as f64),
+    };
+    let head = |i: f64, o: f64| i * hh + hh + hh * hh + hh + hh * o + o;
+    let params = f(spec.token_dim()) * eh
+        + eh
+        + eh * d
+        + d
+        + transformer_parameters(&cfg.model)
+        + head(d, actor_out)
+        + 2.0 * head(critic_in, critic_out);
+    let (b, t) = (f(cfg.batch_size), cfg.model.max_len as f64);
+    let step_bytes = 4.0 * (f(spec.obs_dim) + a + 3.0) + 15.0;
+    let mut m = crate::guard::MemoryEstimate {
+        levers:
+            "batch_size, model.max_len, model.d_model, model.n_layers, n_envs or replay_capacity"
+                .into(),
+        ..Default::default()
+    };
+    m.add("parameters (online and target)", 2.0 * 4.0 * params);
+    m.add("gradients and Adam moments", 3.0 * 4.0 * params);
+    m.add("replay", f(cfg.replay_capacity) * step_bytes);
+    m.add(
+        "one batch's activations",
+        1.5 * transformer_activation_bytes(&cfg.model, b) + 2.0 * 4.0 * b * t * f(spec.token_dim()),
+    );
+    m.add(
+        "acting cache",
+        4.0 * f(cfg.n_envs) * t * (2.0 * cfg.model.n_layers as f64 * d + f(spec.token_dim())),
+    );
+    m
 }
 
 // ---------------------------------------------------------------------------
@@ -275,6 +366,28 @@ impl NetSpec {
             act_low,
             act_high,
         })
+    }
+
+    /// Checks that the bounds have one entry per dimension (a spec read from
+    /// a file may not).
+    pub fn check(&self) -> Result<(), String> {
+        let act = self.n_actions.map_or(self.act_low.len(), |_| 0);
+        if self.obs_low.len() != self.obs_dim
+            || self.obs_high.len() != self.obs_dim
+            || self.act_high.len() != act
+            || self.n_actions == Some(0)
+        {
+            return Err(format!(
+                "spec sizes disagree: obs_dim {} with {} and {} bounds, {:?} discrete actions, {} and {} action bounds",
+                self.obs_dim,
+                self.obs_low.len(),
+                self.obs_high.len(),
+                self.n_actions,
+                self.act_low.len(),
+                self.act_high.len()
+            ));
+        }
+        Ok(())
     }
 
     /// Width of an action as the network sees it (one-hot for discrete).
@@ -940,6 +1053,9 @@ impl Learner {
             },
         )?;
         let spec = NetSpec::from_spaces(&probe.observation_space(), &probe.action_space())?;
+        memory_estimate(&cfg, &spec)
+            .check()
+            .map_err(EppoError::Config)?;
         tch::manual_seed(cfg.seed as i64);
         let vs = nn::VarStore::new(device);
         let net = EppoNet::new(vs.root(), &cfg, &spec)?;
@@ -1117,7 +1233,21 @@ impl Learner {
         let (lv, lc, lp, entropy) =
             losses(&self.net, &self.target, &batch, self.lambda, &self.cfg)?;
         let loss = (&lv + &lc) * self.cfg.critic_weight + &lp;
-        let grad_norm = self.opt.backward_step(&loss);
+        // A NaN or infinite loss or gradient is never applied: the weights
+        // stay those of the last good update and `train` stops with this.
+        let grad_norm = self
+            .opt
+            .try_backward_step(&loss)
+            .map_err(|e| EppoError::NonFinite {
+                update: self.updates + 1,
+                what: format!(
+                    "{e} (value loss {:.4e}, cost value loss {:.4e}, policy loss {:.4e})",
+                    lv.double_value(&[]),
+                    lc.double_value(&[]),
+                    lp.double_value(&[])
+                ),
+                checkpoint: None,
+            })?;
         self.lambda = lambda_update(
             self.lambda,
             &batch.max_violation,
@@ -1212,6 +1342,17 @@ impl Learner {
             .target_vs
             .load(dir.join("target.safetensors"))
             .map_err(|e| bad("target.safetensors", e.to_string()))?;
+        for (file, vs) in [
+            ("model.safetensors", &learner.vs),
+            ("target.safetensors", &learner.target_vs),
+        ] {
+            if let Some((name, n)) = crate::guard::non_finite_variable(vs) {
+                return Err(bad(
+                    file,
+                    format!("weight {name} holds {n} NaN or infinite values"),
+                ));
+            }
+        }
         learner
             .opt
             .load(&dir.join("optimizer.safetensors"))
@@ -1318,7 +1459,10 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
     let (run, mut learner) = match &opts.resume {
         Some(path) => {
             let (run, ckpt) = RunDir::resolve_resume(path)?;
-            (run, Learner::resume(opts.cfg.clone(), opts.env, &ckpt)?)
+            let learner = Learner::resume(opts.cfg.clone(), opts.env, &ckpt)?;
+            // Rounds logged after the checkpoint are redone: drop their records.
+            crate::checkpoint::truncate_metrics(&run.metrics_path(), "updates", learner.updates)?;
+            (run, learner)
         }
         None => {
             let learner = Learner::new(opts.cfg.clone(), opts.env)?;
@@ -1358,6 +1502,15 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
     let log_lines = opts.progress && bar.is_hidden();
     let mut last_log_line = Instant::now();
     let mut last_ckpt = run.latest_checkpoint()?.unwrap_or_default();
+    // A NaN update names the last good checkpoint (never one of NaN weights).
+    let non_finite = |e: EppoError, last: &Path| match e {
+        EppoError::NonFinite { update, what, .. } => EppoError::NonFinite {
+            update,
+            what,
+            checkpoint: (!last.as_os_str().is_empty()).then(|| last.to_path_buf()),
+        },
+        other => other,
+    };
     let started = Instant::now();
     let (start_updates, start_steps) = (learner.updates, learner.env_steps);
     while learner.updates < cfg.total_updates {
@@ -1368,10 +1521,14 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
                 if learner.updates >= cfg.total_updates {
                     break;
                 }
-                stats.push(learner.update()?);
+                stats.push(learner.update().map_err(|e| non_finite(e, &last_ckpt))?);
                 bar.set_position(learner.updates);
-                if learner.updates % cfg.checkpoint_every.max(1) == 0 {
+                if learner.updates % cfg.checkpoint_every == 0 {
                     last_ckpt = learner.save_checkpoint(&run)?;
+                }
+                // First SIGINT/SIGTERM: stop after this update with a checkpoint.
+                if crate::stop::requested() {
+                    break;
                 }
             }
         }
@@ -1422,6 +1579,16 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
             last_log_line = Instant::now();
         }
         bar.set_message(line);
+        if crate::stop::requested() {
+            if !last_ckpt.ends_with(format!("step_{}", learner.updates)) {
+                last_ckpt = learner.save_checkpoint(&run)?;
+            }
+            bar.abandon();
+            return Err(EppoError::Interrupted {
+                checkpoint: last_ckpt,
+                updates: learner.updates,
+            });
+        }
     }
     if !last_ckpt.ends_with(format!("step_{}", learner.updates)) {
         last_ckpt = learner.save_checkpoint(&run)?;
@@ -1646,10 +1813,23 @@ impl EppoAgent {
             .map_err(|e| bad("state.json", e.to_string()))?;
         let state: TrainState =
             serde_json::from_str(&text).map_err(|e| bad("state.json", e.to_string()))?;
+        // The files decide sizes: check them before building anything.
+        cfg.validate()
+            .map_err(|e| bad("config.toml", e.to_string()))?;
+        state.spec.check().map_err(|e| bad("state.json", e))?;
+        memory_estimate(&cfg, &state.spec)
+            .check()
+            .map_err(|e| bad("config.toml", e))?;
         let mut vs = nn::VarStore::new(device);
         let net = EppoNet::new(vs.root(), &cfg, &state.spec)?;
         vs.load(dir.join("model.safetensors"))
             .map_err(|e| bad("model.safetensors", e.to_string()))?;
+        if let Some((name, n)) = crate::guard::non_finite_variable(&vs) {
+            return Err(bad(
+                "model.safetensors",
+                format!("weight {name} holds {n} NaN or infinite values: this model cannot act"),
+            ));
+        }
         vs.freeze();
         Ok(EppoAgent {
             _vs: vs,
