@@ -38,10 +38,15 @@
 //! # Checkpoints
 //! A run folder `{env}__ad__{seed}__{time}` holds `config.toml` (the resolved
 //! [`AdConfig`]), `spec.json` ([`AdSpec`]: sizes, normalisation, dataset,
-//! pretraining tasks), `metrics.jsonl` (one [`AdMetrics`] per log interval),
+//! pretraining tasks), `metrics.jsonl` (one [`AdMetrics`] per log interval)
+//! and `checkpoints/step_N/`: one atomic folder per checkpoint (as EPPO's,
+//! through [`crate::checkpoint::RunDir::write_checkpoint`]) with
 //! `model.safetensors`, `adam.safetensors` (the optimizer's moments, through
-//! the shared [`crate::optim::Adam`]) and `state.json` (updates done).
-//! Resuming loads all three and continues the schedule where it stopped.
+//! the shared [`crate::optim::Adam`]), `state.json` (updates done) and a
+//! manifest with every file's size and SHA-256; the newest
+//! `keep_checkpoints` are kept. Resuming verifies and loads one, drops the
+//! metrics lines logged after it, and continues the schedule where it
+//! stopped; `updates` may grow on resume, every other setting must match.
 
 use std::fs;
 use std::io::Write;
@@ -56,6 +61,7 @@ use tch::{Device, Kind, Tensor, nn, nn::Module};
 use thiserror::Error;
 
 use crate::agent::{Actions, AgentError, Conditioning, InContextAgent, StepInput};
+use crate::checkpoint::{CheckpointError, RunDir, read_manifest};
 use crate::histories::{History, HistoryError, HistoryFile};
 use crate::model::{self, KvCache, ModelError, Transformer};
 use crate::optim::{Adam, AdamConfig};
@@ -74,6 +80,21 @@ pub enum AdError {
     Torch(#[from] tch::TchError),
     #[error("{path}: {message}")]
     Io { path: PathBuf, message: String },
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    /// A loss or gradient became NaN or infinite: the update was not applied.
+    #[error(
+        "update {update}: {what}; training stopped without applying it. {}",
+        crate::checkpoint::last_good(.checkpoint, "lower learning_rate, or check the dataset")
+    )]
+    NonFinite {
+        update: usize,
+        what: String,
+        checkpoint: Option<PathBuf>,
+    },
+    /// Stopped by SIGINT/SIGTERM after writing a checkpoint.
+    #[error("interrupted after update {updates}: checkpoint written to {}", .checkpoint.display())]
+    Interrupted { checkpoint: PathBuf, updates: usize },
 }
 
 fn io_err(path: &Path, e: impl std::fmt::Display) -> AdError {
@@ -118,8 +139,15 @@ pub struct AdConfig {
     pub log_every: usize,
     /// Save a checkpoint every this many updates (and at the end).
     pub checkpoint_every: usize,
+    /// Checkpoints kept (0 keeps all).
+    #[serde(default = "default_keep_checkpoints")]
+    pub keep_checkpoints: usize,
     /// Seed of initialisation and window sampling.
     pub seed: u64,
+}
+
+fn default_keep_checkpoints() -> usize {
+    3
 }
 
 /// The presets shipped in `icrl/presets/ad-{env}-{preset}.toml`: `table2` is
@@ -187,41 +215,37 @@ impl AdConfig {
         Ok(cfg)
     }
 
-    /// Checks the values, naming the ones that do not fit.
+    /// Checks the values: every count at least 1, every number finite and in
+    /// its range (named in the error).
     pub fn validate(&self) -> Result<(), AdError> {
+        use crate::guard::{Range, check_counts, check_numbers};
         self.model.validate()?;
-        if self.batch_size <= 0
-            || self.updates == 0
-            || self.log_every == 0
-            || self.checkpoint_every == 0
-        {
-            return Err(AdError::Config(format!(
-                "batch_size ({}), updates ({}), log_every ({}) and checkpoint_every ({}) must be positive",
-                self.batch_size, self.updates, self.log_every, self.checkpoint_every
-            )));
-        }
-        if self.learning_rate.is_nan()
-            || self.learning_rate <= 0.0
-            || !(0.0..1.0).contains(&self.warmup_fraction)
-        {
-            return Err(AdError::Config(format!(
-                "need learning_rate > 0 ({}) and warmup_fraction in [0, 1) ({})",
-                self.learning_rate, self.warmup_fraction
-            )));
-        }
-        if !(self.rtg_scale > 0.0 && self.ctg_scale > 0.0) {
-            return Err(AdError::Config(format!(
-                "rtg_scale ({}) and ctg_scale ({}) must be positive",
-                self.rtg_scale, self.ctg_scale
-            )));
-        }
-        if !(0.0..0.9).contains(&self.val_fraction) {
-            return Err(AdError::Config(format!(
-                "val_fraction {} must lie in [0, 0.9)",
-                self.val_fraction
-            )));
-        }
-        Ok(())
+        check_counts(&[
+            ("batch_size", i128::from(self.batch_size)),
+            ("updates", self.updates as i128),
+            ("log_every", self.log_every as i128),
+            ("checkpoint_every", self.checkpoint_every as i128),
+        ])
+        .map_err(AdError::Config)?;
+        check_numbers(&[
+            ("learning_rate", self.learning_rate, Range::UNIT_OPEN_LOW),
+            ("beta1", self.beta1, Range::UNIT_OPEN_HIGH),
+            ("beta2", self.beta2, Range::UNIT_OPEN_HIGH),
+            ("grad_clip", self.grad_clip, Range::POSITIVE),
+            (
+                "warmup_fraction",
+                self.warmup_fraction,
+                Range::UNIT_OPEN_HIGH,
+            ),
+            ("rtg_scale", f64::from(self.rtg_scale), Range::POSITIVE),
+            ("ctg_scale", f64::from(self.ctg_scale), Range::POSITIVE),
+            (
+                "val_fraction",
+                self.val_fraction,
+                Range::new(0.0, false, 0.9, true),
+            ),
+        ])
+        .map_err(AdError::Config)
     }
 
     /// Learning rate at `update`: linear warm-up, then cosine to 10% of the peak.
@@ -256,6 +280,31 @@ pub struct AdSpec {
 }
 
 impl AdSpec {
+    /// Checks sizes and normalisation read from a file: one mean and one
+    /// positive, finite std per observation value, at least one action.
+    pub fn check(&self) -> Result<(), String> {
+        if self.obs_mean.len() != self.obs_dim || self.obs_std.len() != self.obs_dim {
+            return Err(format!(
+                "obs_dim {} with {} means and {} stds",
+                self.obs_dim,
+                self.obs_mean.len(),
+                self.obs_std.len()
+            ));
+        }
+        if self.action_dim == 0 {
+            return Err("action_dim is 0".into());
+        }
+        if self.obs_mean.iter().any(|m| !m.is_finite())
+            || self.obs_std.iter().any(|s| !(s.is_finite() && *s > 0.0))
+        {
+            return Err(
+                "the observation normalisation holds values that are not finite (or a std <= 0)"
+                    .into(),
+            );
+        }
+        Ok(())
+    }
+
     /// Token width: obs, previous action, reward, cost, RTG, CTG, episode start.
     pub fn token_dim(&self) -> usize {
         self.obs_dim + self.action_dim + 5
@@ -547,8 +596,8 @@ pub struct TrainRequest<'a> {
     pub dataset_path: &'a Path,
     /// The run folder; created if missing.
     pub run_dir: &'a Path,
-    /// Continue from the folder's checkpoint if there is one.
-    pub resume: bool,
+    /// Continue from this `checkpoints/step_N` folder of `run_dir`.
+    pub resume: Option<&'a Path>,
 }
 
 /// What a finished run reports.
@@ -608,7 +657,7 @@ fn spec_for(data: &HistoryFile, dataset_path: &Path) -> AdSpec {
     }
 }
 
-#[derive(Serialize, Deserialize)]
+#[derive(Debug, Serialize, Deserialize)]
 struct TrainState {
     update: usize,
     samples: u64,
@@ -620,29 +669,127 @@ fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), AdError> {
     fs::rename(&tmp, path).map_err(|e| io_err(path, e))
 }
 
-/// Writes weights, Adam's moments, then `state.json` (last, so it never names
-/// an update whose weights are not on disk).
+/// The model shape recorded in each checkpoint's manifest.
+fn model_manifest(cfg: &AdConfig, spec: &AdSpec) -> serde_json::Value {
+    serde_json::json!({
+        "transformer": cfg.model,
+        "token_dim": spec.token_dim(),
+        "obs_dim": spec.obs_dim,
+        "act_dim": spec.action_dim,
+        "n_actions": spec.discrete.then_some(spec.action_dim),
+    })
+}
+
+/// Writes `checkpoints/step_{update}` as one atomic folder (weights, Adam's
+/// moments, `state.json`, with the manifest's sizes and SHA-256s), keeping the
+/// newest `keep_checkpoints`.
 fn save_checkpoint(
-    dir: &Path,
+    run: &RunDir,
+    cfg: &AdConfig,
+    spec: &AdSpec,
     vs: &nn::VarStore,
     opt: &Adam,
     state: &TrainState,
-) -> Result<(), AdError> {
-    let model = dir.join("model.safetensors");
-    // tch picks the format from the extension: keep `.safetensors` last.
-    let tmp = dir.join("model.tmp.safetensors");
-    vs.save(&tmp)?;
-    fs::rename(&tmp, &model).map_err(|e| io_err(&model, e))?;
-    let adam = dir.join("adam.safetensors");
-    let tmp = dir.join("adam.tmp.safetensors");
-    opt.save(&tmp)?;
-    fs::rename(&tmp, &adam).map_err(|e| io_err(&adam, e))?;
-    let json = serde_json::to_vec_pretty(state).map_err(|e| io_err(dir, e))?;
-    write_atomic(&dir.join("state.json"), &json)
+) -> Result<PathBuf, AdError> {
+    let dir = run.write_checkpoint(
+        state.update as u64,
+        "ad",
+        &spec.env,
+        model_manifest(cfg, spec),
+        cfg.keep_checkpoints,
+        |dir| {
+            let wrap = |path: PathBuf, e: String| CheckpointError::Invalid {
+                path,
+                problem: e,
+                fix: "check the disk".into(),
+            };
+            let p = dir.join("model.safetensors");
+            vs.save(&p).map_err(|e| wrap(p.clone(), e.to_string()))?;
+            let p = dir.join("adam.safetensors");
+            opt.save(&p).map_err(|e| wrap(p.clone(), e.to_string()))?;
+            let p = dir.join("state.json");
+            let json =
+                serde_json::to_vec_pretty(state).map_err(|e| wrap(p.clone(), e.to_string()))?;
+            fs::write(&p, json).map_err(|e| wrap(p.clone(), e.to_string()))
+        },
+    )?;
+    Ok(dir)
+}
+
+/// The fields of two configs that differ, as `name: old -> new`.
+fn config_diff(old: &AdConfig, new: &AdConfig) -> Vec<String> {
+    let (a, b) = (
+        serde_json::to_value(old).unwrap_or_default(),
+        serde_json::to_value(new).unwrap_or_default(),
+    );
+    let mut out = Vec::new();
+    fn walk(prefix: &str, a: &serde_json::Value, b: &serde_json::Value, out: &mut Vec<String>) {
+        match (a, b) {
+            (serde_json::Value::Object(x), serde_json::Value::Object(y)) => {
+                let keys: std::collections::BTreeSet<&String> = x.keys().chain(y.keys()).collect();
+                let null = serde_json::Value::Null;
+                for k in keys {
+                    let name = if prefix.is_empty() {
+                        k.clone()
+                    } else {
+                        format!("{prefix}.{k}")
+                    };
+                    walk(
+                        &name,
+                        x.get(k).unwrap_or(&null),
+                        y.get(k).unwrap_or(&null),
+                        out,
+                    );
+                }
+            }
+            _ if a != b => out.push(format!("{prefix}: {a} -> {b}")),
+            _ => {}
+        }
+    }
+    walk("", &a, &b, &mut out);
+    out
+}
+
+/// Loads `ckpt` (a `checkpoints/step_N` folder, verified against its
+/// manifest) into the model and optimizer; returns its counters.
+fn load_checkpoint_into(
+    ckpt: &Path,
+    cfg: &AdConfig,
+    spec: &AdSpec,
+    vs: &mut nn::VarStore,
+    opt: &mut Adam,
+) -> Result<TrainState, AdError> {
+    let manifest = read_manifest(ckpt)?;
+    manifest.check_compatible(ckpt, "ad", &spec.env, &model_manifest(cfg, spec))?;
+    let bad = |file: &str, e: String| {
+        AdError::Checkpoint(CheckpointError::Invalid {
+            path: ckpt.join(file),
+            problem: e,
+            fix: "resume from an earlier checkpoints/step_N folder, or start a new run".into(),
+        })
+    };
+    vs.load(ckpt.join("model.safetensors"))
+        .map_err(|e| bad("model.safetensors", e.to_string()))?;
+    if let Some((name, n)) = crate::guard::non_finite_variable(vs) {
+        return Err(bad(
+            "model.safetensors",
+            format!("weight {name} holds {n} NaN or infinite values"),
+        ));
+    }
+    opt.load(&ckpt.join("adam.safetensors"))
+        .map_err(|e| bad("adam.safetensors", e))?;
+    let text = fs::read_to_string(ckpt.join("state.json"))
+        .map_err(|e| bad("state.json", e.to_string()))?;
+    serde_json::from_str(&text).map_err(|e| bad("state.json", e.to_string()))
 }
 
 /// Trains (or resumes) a model on the histories, writing the run folder.
 /// `on_log` sees every metrics line (for a progress bar), `on_update` every update.
+///
+/// A NaN or infinite loss or gradient stops training before the update is
+/// applied ([`AdError::NonFinite`], naming the update and the last good
+/// checkpoint); a stop request ([`crate::stop`]) ends it after the current
+/// update with a checkpoint ([`AdError::Interrupted`]).
 pub fn train(
     req: &TrainRequest<'_>,
     on_log: &mut dyn FnMut(&AdMetrics),
@@ -650,9 +797,19 @@ pub fn train(
 ) -> Result<TrainSummary, AdError> {
     let cfg = req.cfg;
     cfg.validate()?;
+    // Finite values and actions inside the action space, or libtorch would
+    // train to NaN or abort on an out-of-range class index.
+    req.data.validate(req.dataset_path)?;
     let dir = req.run_dir;
-    fs::create_dir_all(dir).map_err(|e| io_err(dir, e))?;
     let spec = spec_for(req.data, req.dataset_path);
+    memory_estimate(cfg, &spec, req.data.total_steps())
+        .check()
+        .map_err(AdError::Config)?;
+    let ck = dir.join("checkpoints");
+    fs::create_dir_all(&ck).map_err(|e| io_err(&ck, e))?;
+    let run = RunDir {
+        path: dir.to_path_buf(),
+    };
 
     // Hold out the histories of the last `val_fraction` of the tasks.
     let hists = &req.data.histories;
@@ -673,36 +830,6 @@ pub fn train(
     let mut vs = nn::VarStore::new(Device::cuda_if_available());
     tch::manual_seed(cfg.seed as i64);
     let model = AdModel::new(&vs.root(), &spec, cfg)?;
-
-    // Resume or start fresh; the config and spec must match the folder's.
-    let state_path = dir.join("state.json");
-    let mut state = TrainState {
-        update: 0,
-        samples: 0,
-    };
-    let config_toml = toml::to_string_pretty(cfg).map_err(|e| io_err(dir, e))?;
-    if req.resume && state_path.exists() {
-        let old_cfg = fs::read_to_string(dir.join("config.toml")).map_err(|e| io_err(dir, e))?;
-        let old: AdConfig =
-            toml::from_str(&old_cfg).map_err(|e| io_err(&dir.join("config.toml"), e))?;
-        if old != *cfg {
-            return Err(AdError::Config(format!(
-                "cannot resume {}: its config.toml differs from the requested config",
-                dir.display()
-            )));
-        }
-        let s = fs::read_to_string(&state_path).map_err(|e| io_err(&state_path, e))?;
-        state = serde_json::from_str(&s).map_err(|e| io_err(&state_path, e))?;
-        vs.load(dir.join("model.safetensors"))?;
-    } else {
-        write_atomic(&dir.join("config.toml"), config_toml.as_bytes())?;
-        let spec_json = serde_json::to_vec_pretty(&spec).map_err(|e| io_err(dir, e))?;
-        write_atomic(&dir.join("spec.json"), &spec_json)?;
-    }
-    let resumed_from = state.update;
-    // Skip the sampling stream forward so a resumed run does not replay windows.
-    rng.set_word_pos((resumed_from as u128) << 16);
-
     let mut opt = Adam::new(
         &vs,
         AdamConfig {
@@ -713,10 +840,58 @@ pub fn train(
             grad_clip: Some(cfg.grad_clip),
         },
     );
-    if resumed_from > 0 {
-        let p = dir.join("adam.safetensors");
-        opt.load(&p).map_err(|e| io_err(&p, e))?;
+
+    // Resume or start fresh; the config must match the folder's except for
+    // `updates`, which may grow (the learning-rate schedule then stretches to
+    // the new total).
+    let mut state = TrainState {
+        update: 0,
+        samples: 0,
+    };
+    let config_path = dir.join("config.toml");
+    let config_toml = toml::to_string_pretty(cfg).map_err(|e| io_err(dir, e))?;
+    let mut last_ckpt: Option<PathBuf> = None;
+    if let Some(ckpt) = req.resume {
+        let old_text = fs::read_to_string(&config_path).map_err(|e| io_err(&config_path, e))?;
+        let old = AdConfig::from_toml(&old_text).map_err(|e| io_err(&config_path, e))?;
+        let differ: Vec<String> = config_diff(&old, cfg)
+            .into_iter()
+            .filter(|d| !d.starts_with("updates:") && !d.starts_with("keep_checkpoints:"))
+            .collect();
+        if !differ.is_empty() {
+            return Err(AdError::Config(format!(
+                "cannot resume {}: these settings differ from its config.toml: {}; only updates \
+                 (to extend the run) and keep_checkpoints may change",
+                dir.display(),
+                differ.join(", ")
+            )));
+        }
+        state = load_checkpoint_into(ckpt, cfg, &spec, &mut vs, &mut opt)?;
+        if state.update > cfg.updates {
+            return Err(AdError::Config(format!(
+                "cannot resume {}: it has done {} updates, more than updates = {}; pass --set updates={} or more",
+                ckpt.display(),
+                state.update,
+                cfg.updates,
+                state.update
+            )));
+        }
+        // Lines logged after the checkpoint are redone: drop them.
+        crate::checkpoint::truncate_metrics(
+            &dir.join("metrics.jsonl"),
+            "update",
+            state.update as u64,
+        )?;
+        last_ckpt = Some(ckpt.to_path_buf());
+    } else {
+        let spec_json = serde_json::to_vec_pretty(&spec).map_err(|e| io_err(dir, e))?;
+        write_atomic(&dir.join("spec.json"), &spec_json)?;
     }
+    // The resolved config (a grown `updates` included).
+    write_atomic(&config_path, config_toml.as_bytes())?;
+    let resumed_from = state.update;
+    // Skip the sampling stream forward so a resumed run does not replay windows.
+    rng.set_word_pos((resumed_from as u128) << 16);
 
     // Fixed validation windows.
     let device = vs.device();
@@ -729,11 +904,12 @@ pub fn train(
             .collect::<Result<_, _>>()?
     };
 
+    let metrics_path = dir.join("metrics.jsonl");
     let mut metrics_file = fs::OpenOptions::new()
         .create(true)
         .append(true)
-        .open(dir.join("metrics.jsonl"))
-        .map_err(|e| io_err(dir, e))?;
+        .open(&metrics_path)
+        .map_err(|e| io_err(&metrics_path, e))?;
     let started = Instant::now();
     let (mut loss_sum, mut acc_sum, mut n_sum) = (0.0, 0.0, 0.0);
     let mut first = None;
@@ -745,7 +921,12 @@ pub fn train(
         let (x, y) = train_set.sample(cfg.batch_size, window, &mut rng)?;
         let out = model.forward_t(&x.to_device(device), true)?;
         let (l, acc) = loss(&out, &y.to_device(device), spec.discrete);
-        opt.backward_step(&l);
+        // Never apply a NaN or infinite step: stop with the last good checkpoint.
+        opt.try_backward_step(&l).map_err(|e| AdError::NonFinite {
+            update: state.update + 1,
+            what: e.to_string(),
+            checkpoint: last_ckpt.clone(),
+        })?;
         loss_sum += l.double_value(&[]);
         acc_sum += acc.map_or(0.0, |a| a.double_value(&[]));
         n_sum += 1.0;
@@ -753,8 +934,9 @@ pub fn train(
         state.samples += (cfg.batch_size * window) as u64;
         on_update(state.update);
 
+        let stop = crate::stop::requested();
         let done = state.update == cfg.updates;
-        if state.update.is_multiple_of(cfg.log_every) || done {
+        if state.update.is_multiple_of(cfg.log_every) || done || stop {
             let (val_loss, val_acc) = if val_batches.is_empty() {
                 (None, None)
             } else {
@@ -782,7 +964,7 @@ pub fn train(
                 seconds: started.elapsed().as_secs_f64(),
             };
             let line = serde_json::to_string(&m).map_err(|e| io_err(dir, e))?;
-            writeln!(metrics_file, "{line}").map_err(|e| io_err(dir, e))?;
+            writeln!(metrics_file, "{line}").map_err(|e| io_err(&metrics_path, e))?;
             on_log(&m);
             if first.is_none() {
                 first = Some(m.clone());
@@ -790,8 +972,14 @@ pub fn train(
             last = Some(m);
             (loss_sum, acc_sum, n_sum) = (0.0, 0.0, 0.0);
         }
-        if state.update.is_multiple_of(cfg.checkpoint_every) || done {
-            save_checkpoint(dir, &vs, &opt, &state)?;
+        if state.update.is_multiple_of(cfg.checkpoint_every) || done || stop {
+            last_ckpt = Some(save_checkpoint(&run, cfg, &spec, &vs, &opt, &state)?);
+        }
+        if stop && !done {
+            return Err(AdError::Interrupted {
+                checkpoint: last_ckpt.unwrap_or_default(),
+                updates: state.update,
+            });
         }
     }
     Ok(TrainSummary {
@@ -801,6 +989,36 @@ pub fn train(
         last,
         resumed_from,
     })
+}
+
+/// What supervised pretraining with `cfg` on `steps` dataset steps will
+/// allocate: the tokenised dataset, parameters with their gradients and
+/// Adam's moments, one sampled batch and its activations.
+pub fn memory_estimate(
+    cfg: &AdConfig,
+    spec: &AdSpec,
+    steps: usize,
+) -> crate::guard::MemoryEstimate {
+    use crate::guard::{transformer_activation_bytes, transformer_parameters};
+    let (d, k, a) = (
+        cfg.model.d_model as f64,
+        spec.token_dim() as f64,
+        spec.action_dim as f64,
+    );
+    let params = k * d + d + d * d + d + transformer_parameters(&cfg.model) + d * a + a;
+    let (b, t) = (cfg.batch_size as f64, cfg.model.max_len as f64);
+    let mut m = crate::guard::MemoryEstimate {
+        levers: "batch_size, model.max_len, model.d_model or model.n_layers".into(),
+        ..Default::default()
+    };
+    m.add("tokenised dataset", 4.0 * steps as f64 * (k + a + 2.0));
+    m.add("parameters", 4.0 * params);
+    m.add("gradients and Adam moments", 3.0 * 4.0 * params);
+    m.add(
+        "one batch's activations",
+        transformer_activation_bytes(&cfg.model, b) + 4.0 * b * t * (2.0 * k + 3.0 * d + 2.0 * a),
+    );
+    m
 }
 
 /// The `pretrain --method ad` command: a preset (or a resumed run's config)
@@ -814,23 +1032,47 @@ pub fn pretrain_command(
     sets: &[String],
     out: &Path,
 ) -> Result<TrainSummary, AdError> {
-    let mut table = match resume {
-        Some(dir) => {
-            let p = dir.join("config.toml");
-            let text = fs::read_to_string(&p).map_err(|e| io_err(&p, e))?;
-            text.parse::<toml::Table>().map_err(|e| io_err(&p, e))?
+    // `--resume` names a run folder (its latest checkpoint) or one
+    // checkpoints/step_N folder; every file it reads is named in errors.
+    let resume = match resume {
+        Some(path) => {
+            if path.join("spec.json").is_file() && !path.join("checkpoints").is_dir() {
+                return Err(AdError::Config(format!(
+                    "{}: an AD run written before checkpoints were atomic folders; it can be \
+                     evaluated but not resumed: start a new run",
+                    path.display()
+                )));
+            }
+            Some(RunDir::resolve_resume(path)?)
+        }
+        None => None,
+    };
+    let damaged = |p: &Path, e: String| {
+        AdError::Checkpoint(CheckpointError::Invalid {
+            path: p.to_path_buf(),
+            problem: e,
+            fix: "restore the run's file from a copy, or start a new run".into(),
+        })
+    };
+    let mut table = match &resume {
+        Some((run, _)) => {
+            let p = run.config_path();
+            let text = fs::read_to_string(&p).map_err(|e| damaged(&p, e.to_string()))?;
+            text.parse::<toml::Table>()
+                .map_err(|e| damaged(&p, e.to_string()))?
         }
         None => preset_table(env, preset)?,
     };
     crate::presets::apply_overrides(&mut table, sets)
         .map_err(|e| AdError::Config(e.to_string()))?;
     let cfg = AdConfig::from_table(table)?;
-    let dataset_path = match (dataset, resume) {
+    let dataset_path = match (dataset, &resume) {
         (Some(p), _) => p.to_path_buf(),
-        (None, Some(dir)) => {
-            let p = dir.join("spec.json");
-            let text = fs::read_to_string(&p).map_err(|e| io_err(&p, e))?;
-            let spec: AdSpec = serde_json::from_str(&text).map_err(|e| io_err(&p, e))?;
+        (None, Some((run, _))) => {
+            let p = run.path.join("spec.json");
+            let text = fs::read_to_string(&p).map_err(|e| damaged(&p, e.to_string()))?;
+            let spec: AdSpec =
+                serde_json::from_str(&text).map_err(|e| damaged(&p, e.to_string()))?;
             PathBuf::from(spec.dataset)
         }
         (None, None) => {
@@ -840,15 +1082,9 @@ pub fn pretrain_command(
         }
     };
     let data = crate::histories::read_histories(&dataset_path, Some(env))?;
-    let run_dir = match resume {
-        Some(dir) => dir.to_path_buf(),
-        None => {
-            let run = crate::checkpoint::RunDir::create(out, env, "ad", cfg.seed)
-                .map_err(|e| io_err(out, e))?;
-            // AD keeps its checkpoint files at the top of the run folder.
-            let _ = fs::remove_dir(run.path.join("checkpoints"));
-            run.path
-        }
+    let run_dir = match &resume {
+        Some((run, _)) => run.path.clone(),
+        None => RunDir::create(out, env, "ad", cfg.seed)?.path,
     };
     let bar = indicatif::ProgressBar::new(cfg.updates as u64);
     bar.set_style(
@@ -864,7 +1100,7 @@ pub fn pretrain_command(
         data: &data,
         dataset_path: &dataset_path,
         run_dir: &run_dir,
-        resume: resume.is_some(),
+        resume: resume.as_ref().map(|(_, ckpt)| ckpt.as_path()),
     };
     let fmt = |m: &AdMetrics| {
         format!(
@@ -1007,24 +1243,70 @@ pub struct CheckpointInfo {
 }
 
 impl AdAgent {
-    /// Loads a run folder written by [`train`].
-    pub fn load(dir: &Path) -> Result<(Self, CheckpointInfo), AdError> {
-        let read = |name: &str| {
-            let p = dir.join(name);
-            fs::read_to_string(&p).map_err(|e| io_err(&p, e))
+    /// Loads a run written by [`train`]: its folder (the latest checkpoint)
+    /// or one `checkpoints/step_N` folder, verified against the manifest's
+    /// sizes and SHA-256s. A run written before checkpoints were folders
+    /// (weights at the top of the run folder) loads with a warning that its
+    /// bytes cannot be verified. Weights holding NaN or infinity are refused.
+    pub fn load(path: &Path) -> Result<(Self, CheckpointInfo), AdError> {
+        let (run_dir, ckpt) = if path.join(crate::checkpoint::MANIFEST).is_file() {
+            let (run, ckpt) = RunDir::resolve_resume(path)?;
+            (run.path, ckpt)
+        } else if path.join("checkpoints").is_dir() {
+            let (run, ckpt) = RunDir::resolve_resume(path)?;
+            (run.path, ckpt)
+        } else {
+            eprintln!(
+                "warning: {}: an AD run written before checkpoints were folders with checksums; \
+                 its bytes cannot be verified",
+                path.display()
+            );
+            (path.to_path_buf(), path.to_path_buf())
         };
-        let cfg: AdConfig = toml::from_str(&read("config.toml")?)
-            .map_err(|e| io_err(&dir.join("config.toml"), e))?;
-        let spec: AdSpec = serde_json::from_str(&read("spec.json")?)
-            .map_err(|e| io_err(&dir.join("spec.json"), e))?;
-        let state: TrainState = serde_json::from_str(&read("state.json")?)
-            .map_err(|e| io_err(&dir.join("state.json"), e))?;
+        if ckpt != run_dir {
+            let manifest = read_manifest(&ckpt)?;
+            if manifest.method != "ad" {
+                return Err(AdError::Config(format!(
+                    "{}: a {} checkpoint, not an AD one",
+                    ckpt.display(),
+                    manifest.method
+                )));
+            }
+        }
+        let bad = |p: PathBuf, e: String| {
+            AdError::Checkpoint(CheckpointError::Invalid {
+                path: p,
+                problem: e,
+                fix: "evaluate an earlier checkpoints/step_N folder, or a complete AD run folder"
+                    .into(),
+            })
+        };
+        let read = |p: PathBuf| fs::read_to_string(&p).map_err(|e| bad(p.clone(), e.to_string()));
+        let p = run_dir.join("config.toml");
+        let cfg = AdConfig::from_toml(&read(p.clone())?).map_err(|e| bad(p, e.to_string()))?;
+        let p = run_dir.join("spec.json");
+        let spec: AdSpec =
+            serde_json::from_str(&read(p.clone())?).map_err(|e| bad(p.clone(), e.to_string()))?;
+        spec.check().map_err(|e| bad(p.clone(), e))?;
+        memory_estimate(&cfg, &spec, 0)
+            .check()
+            .map_err(|e| bad(run_dir.join("config.toml"), e))?;
+        let p = ckpt.join("state.json");
+        let state: TrainState =
+            serde_json::from_str(&read(p.clone())?).map_err(|e| bad(p, e.to_string()))?;
         let mut vs = nn::VarStore::new(Device::cuda_if_available());
         let model = AdModel::new(&vs.root(), &spec, &cfg)?;
-        vs.load(dir.join("model.safetensors"))?;
+        let p = ckpt.join("model.safetensors");
+        vs.load(&p).map_err(|e| bad(p.clone(), e.to_string()))?;
+        if let Some((name, n)) = crate::guard::non_finite_variable(&vs) {
+            return Err(bad(
+                p,
+                format!("weight {name} holds {n} NaN or infinite values: this model cannot act"),
+            ));
+        }
         vs.freeze();
         let info = CheckpointInfo {
-            dir: dir.to_path_buf(),
+            dir: ckpt.clone(),
             updates_done: state.update,
             updates_planned: cfg.updates,
             pretrain_tasks: spec.pretrain_tasks.clone(),
@@ -1261,7 +1543,7 @@ mod tests {
             data: &data,
             dataset_path: Path::new("tiny.h5"),
             run_dir: &dir,
-            resume: false,
+            resume: None,
         };
         let mut logs = Vec::new();
         let s = train(&req, &mut |m| logs.push(m.clone()), &mut |_| {}).unwrap();
@@ -1297,23 +1579,72 @@ mod tests {
             Err(AgentError::Input(_))
         ));
 
-        // An interrupted run resumes from its checkpoint with the same config ...
-        fs::write(dir.join("state.json"), r#"{"update": 100, "samples": 0}"#).unwrap();
+        // Checkpoints are atomic step folders with checksummed manifests.
+        let step_60 = dir.join("checkpoints/step_60");
+        let m = read_manifest(&step_60).unwrap();
+        assert_eq!((m.method.as_str(), m.updates), ("ad", 60));
+        assert_eq!(m.sha256.len(), 3, "model, adam, state: {:?}", m.sha256);
+        assert!(dir.join("checkpoints/step_120").is_dir());
+
+        // Resuming from step 60 redoes 61..120: the metrics lines logged after
+        // the checkpoint are dropped, so no update is counted twice.
         let resume = TrainRequest {
-            resume: true,
+            resume: Some(&step_60),
             ..req.clone()
         };
         let s = train(&resume, &mut |_| {}, &mut |_| {}).unwrap();
-        assert_eq!((s.resumed_from, s.updates), (100, 120));
-        // ... and refuses a different one.
+        assert_eq!((s.resumed_from, s.updates), (60, 120));
+        let updates: Vec<usize> = fs::read_to_string(dir.join("metrics.jsonl"))
+            .unwrap()
+            .lines()
+            .map(|l| serde_json::from_str::<AdMetrics>(l).unwrap().update)
+            .collect();
+        assert_eq!(updates, vec![20, 40, 60, 80, 100, 120]);
+        // A longer run continues from the latest checkpoint ...
         let mut more = cfg.clone();
         more.updates = 140;
-        let other = TrainRequest {
+        let step_120 = dir.join("checkpoints/step_120");
+        let longer = TrainRequest {
             cfg: &more,
-            ..resume
+            resume: Some(&step_120),
+            ..req.clone()
         };
-        let e = train(&other, &mut |_| {}, &mut |_| {}).unwrap_err();
-        assert!(e.to_string().contains("differs"), "{e}");
+        let s = train(&longer, &mut |_| {}, &mut |_| {}).unwrap();
+        assert_eq!((s.resumed_from, s.updates), (120, 140));
+        // ... and any other change is refused, naming the field.
+        let mut other_lr = more.clone();
+        other_lr.learning_rate = 1e-3;
+        let other = TrainRequest {
+            cfg: &other_lr,
+            ..longer
+        };
+        let e = train(&other, &mut |_| {}, &mut |_| {})
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("learning_rate: 0.003 -> 0.001"), "{e}");
+        // Fewer updates than done: refused with the fix.
+        let step_140 = dir.join("checkpoints/step_140");
+        let shorter = TrainRequest {
+            resume: Some(&step_140),
+            ..req.clone()
+        };
+        let e = train(&shorter, &mut |_| {}, &mut |_| {})
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("--set updates=140"), "{e}");
+        // Altered weights (same size) are refused on resume and on load.
+        let model = step_140.join("model.safetensors");
+        let mut bytes = fs::read(&model).unwrap();
+        let n = bytes.len();
+        for b in &mut bytes[n - 64..] {
+            *b = b.wrapping_add(1);
+        }
+        fs::write(&model, bytes).unwrap();
+        let e = AdAgent::load(&dir).err().unwrap().to_string();
+        assert!(
+            e.contains("model.safetensors") && e.contains("SHA-256"),
+            "{e}"
+        );
         let _ = fs::remove_dir_all(&dir);
     }
 

@@ -172,7 +172,7 @@ pub fn load_checkpoint(path: &Path, env: EnvName) -> Result<LoadedAgent, EvalCmd
             let loaded = LoadedAgent {
                 method: Method::Ad,
                 agent: Box::new(agent),
-                checkpoint: Some(path.to_path_buf()),
+                checkpoint: Some(info.dir.clone()),
                 pretrain_tasks: info.pretrain_tasks.clone(),
                 budget_range: None,
                 parameters,
@@ -295,6 +295,18 @@ mod tests {
         opts.episodes = Some(3);
         let e = run(vec![agent], &opts).unwrap_err().to_string();
         assert!(e.contains("pass --episodes 2 or less"), "{e}");
+        // A time limit longer than the whole context: named, with the fix.
+        let agent = load_checkpoint(&trained.run_dir, EnvName::DarkRoom).unwrap();
+        opts.episodes = None;
+        opts.max_episode_steps = Some(1_000_000);
+        let e = run(vec![agent], &opts).unwrap_err().to_string();
+        assert!(
+            e.contains("one episode of 1000000 steps does not fit")
+                && e.contains("pass --max-episode-steps 12 or less"),
+            "{e}"
+        );
+        opts.max_episode_steps = None;
+        opts.episodes = Some(3);
         // By default K is capped to the context: 12 / 6 = 2 episodes of 6 steps.
         let agent = load_checkpoint(&trained.last_checkpoint, EnvName::DarkRoom).unwrap();
         opts.episodes = None;
@@ -351,7 +363,7 @@ mod tests {
                 data: &data,
                 dataset_path: Path::new("tiny.h5"),
                 run_dir: &run_dir,
-                resume: false,
+                resume: None,
             },
             &mut |_| {},
             &mut |_| {},
