@@ -290,6 +290,8 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
         cfg.cost_limits = c.clone();
     }
     cfg.validate()?;
+    // A bad --out fails now, not after hours of generation.
+    crate::histories::check_output_path(&cmd.out)?;
     let total = (cfg.tasks * cfg.cost_limits.len() * cfg.steps) as u64;
     let bar = indicatif::ProgressBar::new(total);
     bar.set_style(

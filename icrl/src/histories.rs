@@ -65,6 +65,8 @@ pub enum Problem {
     Empty(String),
     /// The caller asked to write something inconsistent.
     Invalid(String),
+    /// The output path cannot receive the file.
+    Output(String),
 }
 
 impl fmt::Display for Problem {
@@ -83,6 +85,7 @@ impl fmt::Display for Problem {
             Problem::Malformed(what) => write!(f, "malformed: {what}"),
             Problem::Empty(what) => write!(f, "empty: {what}"),
             Problem::Invalid(what) => write!(f, "invalid histories: {what}"),
+            Problem::Output(what) => write!(f, "cannot write the file here: {what}"),
         }
     }
 }
@@ -261,6 +264,46 @@ impl History {
                 )));
             }
         }
+        // Every value finite: one NaN reward would turn a whole training run NaN.
+        let values = [
+            ("observations", &self.observations, info.obs_dim.max(1)),
+            (
+                "next_observations",
+                &self.next_observations,
+                info.obs_dim.max(1),
+            ),
+            ("actions", &self.actions, info.action_dim.max(1)),
+            ("rewards", &self.rewards, 1),
+            ("costs", &self.costs, 1),
+        ];
+        for (name, v, width) in values {
+            if let Some(k) = v.iter().position(|x| !x.is_finite()) {
+                return Err(Problem::Invalid(format!(
+                    "history {i}: {name} holds {} at step {} (values must be finite)",
+                    v[k],
+                    k / width
+                )));
+            }
+        }
+        if !self.cost_limit.is_finite() {
+            return Err(Problem::Invalid(format!(
+                "history {i}: cost limit {} is not finite",
+                self.cost_limit
+            )));
+        }
+        // A discrete action is an index into the action space.
+        if let Some(n) = info.action_n
+            && let Some(k) = self
+                .actions
+                .iter()
+                .position(|&a| a < 0.0 || a.fract() != 0.0 || a as usize >= n)
+        {
+            return Err(Problem::Invalid(format!(
+                "history {i}: action {} at step {k} is not one of the {n} discrete actions 0..={}",
+                self.actions[k],
+                n - 1
+            )));
+        }
         if !(self.terminals[t - 1] || self.timeouts[t - 1]) {
             return Err(Problem::Invalid(format!(
                 "history {i} ends mid-episode (its last step is neither terminal nor a timeout)"
@@ -284,6 +327,24 @@ pub struct HistoryFile {
 }
 
 impl HistoryFile {
+    /// Checks every history as the reader does (lengths, finite values,
+    /// discrete actions inside the action space, whole episodes); `path`
+    /// names the data in the error. Learners that take histories from memory
+    /// call it before training.
+    pub fn validate(&self, path: &Path) -> Result<(), HistoryError> {
+        if self.histories.is_empty() {
+            return Err(HistoryError::new(
+                path,
+                Problem::Empty("no histories".into()),
+            ));
+        }
+        for (i, h) in self.histories.iter().enumerate() {
+            h.check(i, &self.info)
+                .map_err(|p| HistoryError::new(path, p))?;
+        }
+        Ok(())
+    }
+
     /// Total steps over all histories.
     pub fn total_steps(&self) -> usize {
         self.histories.iter().map(History::len).sum()
@@ -295,6 +356,35 @@ pub fn temp_path(path: &Path) -> PathBuf {
     let mut s = path.as_os_str().to_owned();
     s.push(".tmp");
     PathBuf::from(s)
+}
+
+/// Checks, before any long work, that `path` can receive a history file:
+/// it is not a folder, its folder exists, and `<path>.tmp` can be created
+/// there (the probe is removed again).
+pub fn check_output_path(path: &Path) -> Result<(), HistoryError> {
+    let err = |m: String| HistoryError::new(path, Problem::Output(m));
+    if path.is_dir() {
+        return Err(err(format!(
+            "it is a folder; pass a file path such as {}",
+            path.join("histories.h5").display()
+        )));
+    }
+    let parent = match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    };
+    if !parent.is_dir() {
+        return Err(err(format!(
+            "the folder {} does not exist; create it first (mkdir -p {})",
+            parent.display(),
+            parent.display()
+        )));
+    }
+    let tmp = temp_path(path);
+    std::fs::File::create(&tmp)
+        .map_err(|e| err(format!("cannot create {}: {e}", tmp.display())))?;
+    let _ = std::fs::remove_file(&tmp);
+    Ok(())
 }
 
 /// Creates dataset `name` of `shape` (row-major `data`), chunked along the
@@ -315,10 +405,29 @@ fn put<T: hdf5::H5Type>(
         .write_raw(data)
 }
 
-/// Reads dataset `name` as a flat row-major vector with its shape.
+/// Reads dataset `name` as a flat row-major vector with its shape. A
+/// declared size that would not fit in half the machine's available memory
+/// (a damaged or hostile file: chunked datasets can declare any shape) is
+/// an error before anything is allocated.
 fn get<T: hdf5::H5Type>(f: &hdf5::File, name: &str) -> hdf5::Result<(Vec<T>, Vec<usize>)> {
     let d = f.dataset(name)?;
-    Ok((d.read_raw::<T>()?, d.shape()))
+    let shape = d.shape();
+    let bytes = shape
+        .iter()
+        .try_fold(std::mem::size_of::<T>() as u128, |acc, &n| {
+            acc.checked_mul(n as u128)
+        });
+    let limit = crate::guard::machine_memory().map_or(u128::MAX, |(avail, _)| avail as u128 / 2);
+    match bytes {
+        Some(b) if b <= limit => Ok((d.read_raw::<T>()?, shape)),
+        _ => Err(hdf5::Error::from(
+            format!(
+                "declares shape {shape:?}, more than half this machine's available memory ({})",
+                crate::guard::human_bytes(limit as f64)
+            )
+            .as_str(),
+        )),
+    }
 }
 
 /// Writes `histories` to `path` (through `<path>.tmp` and a rename).
@@ -348,8 +457,10 @@ pub fn write_histories(path: &Path, file: &HistoryFile) -> Result<(), HistoryErr
     let result = write_raw(&tmp, file, n_obstacles);
     match result {
         Ok(()) => std::fs::rename(&tmp, path).map_err(|e| {
-            err(Problem::Unreadable(format!(
-                "renaming {}: {e}",
+            // Never leave the temporary file beside an output that failed.
+            let _ = std::fs::remove_file(&tmp);
+            err(Problem::Output(format!(
+                "renaming {} into place: {e}",
                 tmp.display()
             )))
         }),
@@ -514,6 +625,12 @@ pub fn read_histories(
         action_n: (action_n > 0).then_some(action_n),
         grid_size: u64_attr("grid_size")? as usize,
     };
+    if info.action_n.is_some() && info.action_dim != 1 {
+        return Err(malformed(format!(
+            "a discrete action space (action_n {action_n}) needs action_dim 1, got {}",
+            info.action_dim
+        )));
+    }
 
     // Each dataset with the shape it must have (None: any length, checked below).
     let read = |name: &str, tail: &[usize]| -> Result<(Vec<f32>, usize), HistoryError> {
@@ -789,6 +906,95 @@ mod tests {
         file.histories[0].timeouts[4] = false;
         let e = write_histories(&path, &file).unwrap_err();
         assert!(matches!(e.problem, Problem::Invalid(_)), "{e}");
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    /// Replaces dataset `name` of a written file with `data` (same shape).
+    fn overwrite(path: &Path, name: &str, data: &[f32]) {
+        let f = hdf5::File::open_rw(path).unwrap();
+        let shape = f.dataset(name).unwrap().shape();
+        f.unlink(name).unwrap();
+        put(&f, name, data, &shape).unwrap();
+    }
+
+    #[test]
+    fn output_paths_are_checked_before_any_work() {
+        let dir = tmpdir("out");
+        let e = check_output_path(&dir).unwrap_err();
+        assert!(matches!(e.problem, Problem::Output(_)), "{e}");
+        assert!(e.to_string().contains("it is a folder"), "{e}");
+        assert!(!temp_path(&dir).exists(), "no DIR.tmp beside the folder");
+        let e = check_output_path(&dir.join("missing/h.h5"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("does not exist") && e.contains("mkdir -p"),
+            "{e}"
+        );
+        check_output_path(&dir.join("h.h5")).unwrap();
+        assert!(
+            !temp_path(&dir.join("h.h5")).exists(),
+            "the probe is removed"
+        );
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[test]
+    fn non_finite_values_and_out_of_range_actions_are_refused() {
+        let dir = tmpdir("values");
+        let path = dir.join("h.h5");
+        let file = tiny_file(2);
+        // The writer refuses them ...
+        let mut nan = file.clone();
+        nan.histories[1].rewards[3] = f32::NAN;
+        let e = write_histories(&path, &nan).unwrap_err().to_string();
+        assert!(e.contains("history 1: rewards holds NaN at step 3"), "{e}");
+        // ... and so does the reader, for files written elsewhere.
+        write_histories(&path, &file).unwrap();
+        let mut rewards: Vec<f32> = file
+            .histories
+            .iter()
+            .flat_map(|h| h.rewards.clone())
+            .collect();
+        rewards[7] = f32::NAN;
+        overwrite(&path, "rewards", &rewards);
+        let (p, msg) = problem_of(&path, None);
+        assert!(matches!(p, Problem::Malformed(_)), "{msg}");
+        assert!(
+            msg.contains("history 1: rewards holds NaN at step 2"),
+            "{msg}"
+        );
+        write_histories(&path, &file).unwrap();
+        let mut obs: Vec<f32> = file
+            .histories
+            .iter()
+            .flat_map(|h| h.observations.clone())
+            .collect();
+        obs[1] = f32::INFINITY;
+        overwrite(&path, "observations", &obs);
+        let (_, msg) = problem_of(&path, None);
+        assert!(msg.contains("observations holds inf at step 0"), "{msg}");
+        // Action 17 in a 5-action space, and a fractional action.
+        for (bad, shown) in [
+            (17.0f32, "action 17 "),
+            (1.5, "action 1.5 "),
+            (-1.0, "action -1 "),
+        ] {
+            write_histories(&path, &file).unwrap();
+            let mut actions: Vec<f32> = file
+                .histories
+                .iter()
+                .flat_map(|h| h.actions.clone())
+                .collect();
+            actions[4] = bad;
+            overwrite(&path, "actions", &actions);
+            let (_, msg) = problem_of(&path, None);
+            assert!(
+                msg.contains(shown)
+                    && msg.contains("at step 4 is not one of the 5 discrete actions 0..=4"),
+                "{msg}"
+            );
+        }
         std::fs::remove_dir_all(dir).unwrap();
     }
 

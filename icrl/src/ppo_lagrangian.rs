@@ -40,6 +40,11 @@ pub enum PpoLagError {
     Env(#[from] EnvError),
     #[error(transparent)]
     Torch(#[from] tch::TchError),
+    /// A loss became NaN or infinite: the history would be meaningless.
+    #[error(
+        "PPO-Lagrangian update {update}: the loss is {loss}; lower learning_rate or check the settings"
+    )]
+    NonFinite { update: usize, loss: f64 },
 }
 
 /// PPO-Lagrangian hyperparameters (defaults: [`PpoLagConfig::darkroom`]).
@@ -130,15 +135,39 @@ impl PpoLagConfig {
         }
     }
 
-    /// Checks the sizes fit together.
+    /// Checks the sizes fit together and every number lies in its range
+    /// (named in the error).
     pub fn validate(&self) -> Result<(), PpoLagError> {
-        let batch = self.num_envs * self.rollout_steps;
-        if self.num_envs == 0 || self.rollout_steps == 0 || self.total_steps == 0 {
-            return Err(PpoLagError::Config(format!(
-                "num_envs ({}), rollout_steps ({}) and total_steps ({}) must be positive",
-                self.num_envs, self.rollout_steps, self.total_steps
-            )));
-        }
+        use crate::guard::{Range, check_counts, check_numbers};
+        check_counts(&[
+            ("total_steps", self.total_steps as i128),
+            ("num_envs", self.num_envs as i128),
+            ("rollout_steps", self.rollout_steps as i128),
+            ("hidden", i128::from(self.hidden)),
+            ("update_epochs", self.update_epochs as i128),
+            ("minibatches", self.minibatches as i128),
+        ])
+        .map_err(PpoLagError::Config)?;
+        check_numbers(&[
+            ("learning_rate", self.learning_rate, Range::UNIT_OPEN_LOW),
+            ("gamma", self.gamma, Range::UNIT),
+            ("cost_gamma", self.cost_gamma, Range::UNIT),
+            ("gae_lambda", self.gae_lambda, Range::UNIT),
+            ("clip_coef", self.clip_coef, Range::POSITIVE),
+            ("ent_coef", self.ent_coef, Range::NON_NEGATIVE),
+            ("vf_coef", self.vf_coef, Range::POSITIVE),
+            ("max_grad_norm", self.max_grad_norm, Range::POSITIVE),
+            ("lagrange_init", self.lagrange_init, Range::NON_NEGATIVE),
+            ("lagrange_lr", self.lagrange_lr, Range::NON_NEGATIVE),
+            ("lagrange_max", self.lagrange_max, Range::NON_NEGATIVE),
+            (
+                "init_log_std",
+                self.init_log_std,
+                Range::new(-20.0, false, 2.0, false),
+            ),
+        ])
+        .map_err(PpoLagError::Config)?;
+        let batch = self.num_envs.saturating_mul(self.rollout_steps);
         if self.minibatches == 0 || !batch.is_multiple_of(self.minibatches) {
             return Err(PpoLagError::Config(format!(
                 "minibatches ({}) must divide num_envs * rollout_steps ({batch})",
@@ -477,6 +506,28 @@ pub fn train(
         Space::Discrete { .. } => (true, 1usize, None),
         Space::Box { low, high } => (false, low.len(), Some((low.clone(), high.clone()))),
     };
+    // What the run will hold: the history it records, one rollout, and the
+    // networks with Adam's moments (before anything is allocated).
+    {
+        let (o, a, h) = (obs_dim as f64, act_dim as f64, cfg.hidden as f64);
+        let mut m = crate::guard::MemoryEstimate {
+            levers: "total_steps, num_envs, rollout_steps or hidden".into(),
+            ..Default::default()
+        };
+        m.add(
+            "history",
+            4.0 * cfg.total_steps as f64 * (2.0 * o + a + 4.0),
+        );
+        m.add(
+            "rollout",
+            4.0 * 3.0 * (cfg.num_envs as f64 * cfg.rollout_steps as f64) * (o + a + 8.0),
+        );
+        m.add(
+            "networks and Adam moments",
+            4.0 * 4.0 * 3.0 * (o * h + h * h + 2.0 * h * a),
+        );
+        m.check().map_err(PpoLagError::Config)?;
+    }
 
     // -- networks, optimiser, generators
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
@@ -711,6 +762,13 @@ pub fn train(
                 .mean(Kind::Float);
                 let ent = entropy.mean(Kind::Float);
                 let loss = &pg_loss - cfg.ent_coef * &ent + cfg.vf_coef * (&v_loss + &c_loss);
+                let value = loss.double_value(&[]);
+                if !value.is_finite() {
+                    return Err(PpoLagError::NonFinite {
+                        update: update + 1,
+                        loss: value,
+                    });
+                }
                 opt.backward_step_clip_norm(&loss, cfg.max_grad_norm);
                 // http://joschu.net/blog/kl-approx.html: E[(r - 1) - log r]
                 let kl = tch::no_grad(|| ((&ratio - 1.0) - &log_ratio).mean(Kind::Float));
