@@ -51,12 +51,12 @@ pub enum EvalCmdError {
     Checkpoint { path: String, message: String },
     #[error("invalid eval options: {0}")]
     Options(String),
-    #[error("writing {path}: {source}")]
+    #[error("{path}: {source}")]
     Io {
         path: String,
         source: std::io::Error,
     },
-    #[error("writing {path}: {source}")]
+    #[error("{path}: {source}")]
     Json {
         path: String,
         source: serde_json::Error,
@@ -394,6 +394,15 @@ fn run_one(
     };
     let make = move || -> Result<Box<dyn CmdpEnv>, EnvError> { make_env(env, &env_options) };
     let t_max = make()?.max_episode_steps();
+    if let Some(c) = loaded.context
+        && t_max > c.max_len
+    {
+        return Err(EvalCmdError::Options(format!(
+            "one episode of {t_max} steps does not fit the checkpoint's context of {} steps: \
+             pass --max-episode-steps {} or less (the checkpoint was trained with {})",
+            c.max_len, c.max_len, c.max_episode_steps
+        )));
+    }
     // Episodes: asked for, else the paper's K capped by what the context holds.
     let episodes = match (opts.episodes, loaded.context) {
         (Some(k), Some(c)) if k * t_max > c.max_len => {
@@ -563,8 +572,45 @@ fn headline(r: &EvalReport) -> String {
     )
 }
 
+impl EvalOptions {
+    /// Refuses counts of zero and numbers that are not finite, naming the
+    /// command-line option.
+    pub fn validate(&self) -> Result<(), EvalCmdError> {
+        let bad = |m: String| Err(EvalCmdError::Options(m));
+        for (name, v) in [
+            ("--batch", Some(self.batch)),
+            ("--threads", Some(self.threads)),
+            ("--episodes", self.episodes),
+            ("--max-episode-steps", self.max_episode_steps),
+        ] {
+            if v == Some(0) {
+                return bad(format!("{name} 0: must be at least 1"));
+            }
+        }
+        if self.budgets.is_none() && self.n_budgets == 0 {
+            return bad("--n-budgets 0: must be at least 1 (or give --budgets)".into());
+        }
+        if let Some(b) = self.budgets.iter().flatten().find(|b| !b.is_finite()) {
+            return bad(format!("--budgets: {b} is not a finite number"));
+        }
+        if !self.rtg.is_finite() {
+            return bad(format!("--rtg {}: must be a finite number", self.rtg));
+        }
+        Ok(())
+    }
+}
+
+/// Checks that `dir` can be created and written to, before any long work.
+pub fn check_output_dir(dir: &Path) -> Result<(), EvalCmdError> {
+    std::fs::create_dir_all(dir).map_err(io_err(dir))?;
+    let probe = dir.join(format!(".icrl-write-test-{}", std::process::id()));
+    std::fs::write(&probe, b"").map_err(io_err(dir))?;
+    std::fs::remove_file(&probe).map_err(io_err(&probe))
+}
+
 /// Runs the `eval` command for `agents` (plus a random policy when asked).
 pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutputs, EvalCmdError> {
+    opts.validate()?;
     if opts.tasks == 0 {
         return Err(EvalError::Config(
             "the task set is empty: ask for at least one evaluation task (--tasks)".into(),
@@ -594,7 +640,7 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
             note: String::new(),
         });
     }
-    std::fs::create_dir_all(&opts.out).map_err(io_err(&opts.out))?;
+    check_output_dir(&opts.out)?;
     let d = env_defaults(opts.env);
     let mut out = EvalOutputs::default();
     let mut fig1 = EnvCurves {
@@ -661,6 +707,12 @@ pub fn replot(dirs: &[PathBuf], out: &Path) -> Result<EvalOutputs, EvalCmdError>
     // (env, method, sweep) -> summary, in file-name order for stability.
     let mut reports: Vec<(EnvName, Method, bool, Summary)> = Vec::new();
     for dir in dirs {
+        if !dir.is_dir() {
+            return Err(EvalCmdError::Options(format!(
+                "--from {}: no such folder (pass folders that `icrl eval` wrote its reports into)",
+                dir.display()
+            )));
+        }
         let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
             .map_err(io_err(dir))?
             .filter_map(|e| e.ok().map(|e| e.path()))

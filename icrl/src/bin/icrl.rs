@@ -41,9 +41,9 @@ enum Command {
         /// Output stem: writes STEM.png and STEM.svg.
         #[arg(long)]
         out: PathBuf,
-        /// Bins of learning progress.
-        #[arg(long, default_value_t = 20)]
-        bins: usize,
+        /// Bins of learning progress (at least 1).
+        #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u32).range(1..=100_000))]
+        bins: u32,
     },
     /// Evaluate checkpoints in context on held-out edge-oriented tasks: JSON, CSV, figures.
     Eval(icrl_eval::EvalArgs),
@@ -67,7 +67,7 @@ struct DatasetArgs {
     #[arg(long, value_delimiter = ',')]
     cost_limits: Option<Vec<f32>>,
     /// Master seed.
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0, allow_hyphen_values = true, value_parser = parse_seed)]
     seed: u64,
     /// Worker threads (default: all cores).
     #[arg(long)]
@@ -75,6 +75,17 @@ struct DatasetArgs {
     /// Which learner makes the histories.
     #[arg(long, default_value = "ppo-lagrangian", value_parser = ["ppo-lagrangian", "noisy-optimal"])]
     source: String,
+}
+
+/// A seed: a whole number from 0 to 2^64 - 1 (clap would call `-1` an
+/// unexpected argument).
+fn parse_seed(s: &str) -> Result<u64, String> {
+    s.trim().parse::<u64>().map_err(|_| {
+        format!(
+            "{s:?} is not a seed: seeds are whole numbers from 0 to {}",
+            u64::MAX
+        )
+    })
 }
 
 fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
@@ -135,7 +146,7 @@ struct PretrainArgs {
     #[arg(long, value_name = "DIR")]
     resume: Option<PathBuf>,
     /// Seed; overrides the preset's.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true, value_parser = parse_seed)]
     seed: Option<u64>,
     /// Override any config field, e.g. `--set total_updates=500 --set model.n_layers=2`.
     #[arg(long = "set", value_name = "KEY=VALUE")]
@@ -202,10 +213,66 @@ fn pretrain(args: PretrainArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The command that continues an interrupted run.
+fn resume_command(env: &str, method: &str, checkpoint: &std::path::Path) -> String {
+    // checkpoints/step_N -> the run folder (its latest checkpoint).
+    let run = checkpoint
+        .parent()
+        .and_then(std::path::Path::parent)
+        .unwrap_or(checkpoint);
+    format!(
+        "icrl pretrain --env {env} --method {method} --resume {}",
+        run.display()
+    )
+}
+
+/// `pretrain` with the graceful stop: the first SIGINT/SIGTERM ends training
+/// after the current update with a checkpoint and the resume command (exit
+/// 130); a second exits at once.
+fn pretrain_with_stop(args: PretrainArgs) -> ExitCode {
+    if let Err(e) = icrl::stop::install() {
+        eprintln!("warning: {e}; Ctrl-C will stop without a checkpoint");
+    }
+    let (env, method) = (args.env.clone(), args.method.clone());
+    let result = pretrain(args);
+    let interrupted =
+        result
+            .as_ref()
+            .err()
+            .and_then(|e| match e.downcast_ref::<icrl::eppo::EppoError>() {
+                Some(icrl::eppo::EppoError::Interrupted {
+                    checkpoint,
+                    updates,
+                }) => Some((checkpoint.clone(), *updates as usize)),
+                _ => match e.downcast_ref::<icrl::ad::AdError>() {
+                    Some(icrl::ad::AdError::Interrupted {
+                        checkpoint,
+                        updates,
+                    }) => Some((checkpoint.clone(), *updates)),
+                    _ => None,
+                },
+            });
+    match (result, interrupted) {
+        (Ok(()), _) => ExitCode::SUCCESS,
+        (Err(_), Some((checkpoint, updates))) => {
+            eprintln!(
+                "stopped after update {updates}; checkpoint {}\nresume with: {}",
+                checkpoint.display(),
+                resume_command(&env, &method, &checkpoint)
+            );
+            ExitCode::from(icrl::stop::EXIT_INTERRUPTED)
+        }
+        (Err(e), None) => {
+            eprintln!("error: {e:#}");
+            ExitCode::FAILURE
+        }
+    }
+}
+
 fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
-        Command::Pretrain(args) => pretrain(args),
+        Command::Pretrain(args) => return pretrain_with_stop(args),
         // An AD run folder has spec.json; EPPO's has a manifest.
         Command::PlotTraining { run, .. } if run.join("spec.json").exists() => {
             icrl::ad::plot_training(&run)
@@ -216,7 +283,7 @@ fn main() -> ExitCode {
             .map(|f| println!("wrote {}", f.display()))
             .map_err(Into::into),
         Command::PlotHistories { file, out, bins } => {
-            icrl::dataset::plot_histories(&file, &out, bins)
+            icrl::dataset::plot_histories(&file, &out, bins as usize)
                 .map(|fs| fs.iter().for_each(|f| println!("wrote {}", f.display())))
                 .map_err(Into::into)
         }

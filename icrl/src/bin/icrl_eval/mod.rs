@@ -49,7 +49,7 @@ pub struct EvalArgs {
     #[arg(long, default_value = "results/eval")]
     out: PathBuf,
     /// Evaluation seed (selects the held-out task seeds and sampled budgets).
-    #[arg(long, default_value_t = 0)]
+    #[arg(long, default_value_t = 0, allow_hyphen_values = true, value_parser = crate::parse_seed)]
     seed: u64,
     /// Trajectories acted on together.
     #[arg(long, default_value_t = 256)]
@@ -107,6 +107,9 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
         seed_torch: true,
         command: std::env::args().collect::<Vec<_>>().join(" "),
     };
+    // Bad options and an unwritable output folder fail before any loading.
+    opts.validate()?;
+    eval_cmd::check_output_dir(&opts.out)?;
     let agents = args
         .checkpoint
         .iter()
