@@ -44,6 +44,9 @@ pub mod stop;
 pub mod task_seeds;
 
 #[cfg(test)]
+mod reliability_tests;
+
+#[cfg(test)]
 mod tests {
     use tch::{Kind, Tensor};
 

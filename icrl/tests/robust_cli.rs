@@ -1,0 +1,232 @@
+//! The `icrl` binary under bad input and signals (issue 12): each bad input
+//! ends in a clear message and a non-zero exit, never a panic or backtrace;
+//! SIGINT/SIGTERM during `pretrain` stops with a checkpoint and the resume
+//! command.
+
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Output, Stdio};
+use std::time::{Duration, Instant};
+
+fn icrl(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_icrl"))
+        .args(args)
+        .output()
+        .expect("run icrl")
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("icrl-robust-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+/// Fails unless the command failed with `want` in stderr and no panic.
+fn refused(out: &Output, want: &str) {
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "expected a failure: {err}");
+    assert!(err.contains(want), "expected {want:?} in: {err}");
+    assert!(
+        !err.contains("panicked") && !err.contains("backtrace"),
+        "no panic: {err}"
+    );
+}
+
+#[test]
+fn bad_settings_and_arguments_are_refused_clearly() {
+    let dir = tmp("args");
+    let out = dir.join("runs").display().to_string();
+    let pretrain = |sets: &[&str]| {
+        let mut args = vec!["pretrain", "--env", "darkroom", "--out", &out];
+        for s in sets {
+            args.extend(["--set", s]);
+        }
+        icrl(&args)
+    };
+    refused(
+        &pretrain(&["lr=nan"]),
+        "lr = NaN: must be a finite number in (0, 1]",
+    );
+    refused(&pretrain(&["lr=-1"]), "lr = -1");
+    refused(
+        &pretrain(&["updates_per_round=0"]),
+        "updates_per_round = 0: must be at least 1",
+    );
+    refused(&pretrain(&["batch_size=1000000000"]), "needs about");
+    refused(&pretrain(&["model.max_len=1000000000"]), "needs about");
+    assert!(
+        !dir.join("runs").exists(),
+        "no run folder for refused settings"
+    );
+    refused(
+        &icrl(&["pretrain", "--env", "darkroom", "--seed", "-1"]),
+        "\"-1\" is not a seed",
+    );
+    // dataset: the output path is checked before any generation.
+    let missing = dir.join("missing/h.h5").display().to_string();
+    let t = Instant::now();
+    refused(
+        &icrl(&["dataset", "--env", "darkroom", "--out", &missing]),
+        "does not exist; create it first",
+    );
+    assert!(
+        t.elapsed() < Duration::from_secs(30),
+        "refused before generating"
+    );
+    let as_dir = dir.display().to_string();
+    refused(
+        &icrl(&["dataset", "--env", "darkroom", "--out", &as_dir]),
+        "it is a folder",
+    );
+    assert!(!PathBuf::from(format!("{as_dir}.tmp")).exists());
+    // eval options.
+    let eval = |extra: &[&str]| {
+        let mut args = vec!["eval", "--env", "darkroom", "--out", &as_dir];
+        args.extend(extra);
+        icrl(&args)
+    };
+    refused(
+        &eval(&["--episodes", "0"]),
+        "--episodes 0: must be at least 1",
+    );
+    refused(
+        &eval(&["--n-budgets", "0"]),
+        "--n-budgets 0: must be at least 1",
+    );
+    refused(
+        &eval(&["--max-episode-steps", "0"]),
+        "--max-episode-steps 0",
+    );
+    refused(
+        &icrl(&["eval", "--from", "/nonexistent/reports"]),
+        "--from /nonexistent/reports: no such folder",
+    );
+    refused(
+        &icrl(&["plot-histories", "x.h5", "--out", "x", "--bins", "0"]),
+        "0 is not in 1..=100000",
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Starts a tiny EPPO run that would take very long, and waits until it has
+/// logged its first round (so the signal handler is installed).
+fn start_long_run(out: &Path) -> (Child, PathBuf) {
+    let sets = [
+        "max_episode_steps=6",
+        "k_min=2",
+        "k_max=2",
+        "n_envs=3",
+        "batch_size=3",
+        "replay_capacity=1000",
+        "encoder_hidden=16",
+        "head_hidden=16",
+        "model.d_model=16",
+        "model.n_heads=2",
+        "model.n_layers=1",
+        "model.d_ff=32",
+        "model.max_len=12",
+        "total_updates=1000000",
+        "updates_per_round=2",
+        "learning_starts=0",
+        "checkpoint_every=1000000",
+        "torch_threads=1",
+        "env_threads=1",
+    ];
+    let mut cmd = Command::new(env!("CARGO_BIN_EXE_icrl"));
+    cmd.args(["pretrain", "--env", "darkroom", "--out"])
+        .arg(out);
+    for s in sets {
+        cmd.args(["--set", s]);
+    }
+    let child = cmd
+        .stdout(Stdio::piped())
+        .stderr(Stdio::piped())
+        .spawn()
+        .expect("start icrl pretrain");
+    let t = Instant::now();
+    loop {
+        let run = std::fs::read_dir(out)
+            .ok()
+            .and_then(|mut d| d.next())
+            .and_then(|e| e.ok())
+            .map(|e| e.path());
+        if let Some(run) = run
+            && std::fs::read_to_string(run.join("metrics.jsonl"))
+                .is_ok_and(|m| m.lines().count() >= 2)
+        {
+            return (child, run);
+        }
+        assert!(
+            t.elapsed() < Duration::from_secs(120),
+            "the run never logged a round"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn wait(mut child: Child, limit: Duration) -> Output {
+    let t = Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if t.elapsed() > limit {
+            let _ = child.kill();
+            panic!("the run did not stop within {limit:?}");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    child.wait_with_output().unwrap()
+}
+
+fn signal(pids: &str, script: &str) {
+    let status = Command::new("bash")
+        .arg("-c")
+        .arg(script.replace("PID", pids))
+        .status()
+        .unwrap();
+    assert!(status.success());
+}
+
+#[test]
+fn first_signal_checkpoints_and_prints_the_resume_command() {
+    let out = tmp("sigint");
+    let (child, run) = start_long_run(&out);
+    signal(&child.id().to_string(), "kill -INT PID");
+    let o = wait(child, Duration::from_secs(60));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(130), "{err}");
+    assert!(err.contains("stop requested"), "{err}");
+    let resume = format!(
+        "resume with: icrl pretrain --env darkroom --method eppo --resume {}",
+        run.display()
+    );
+    assert!(err.contains(&resume), "{err}");
+    // The checkpoint holds the last update that metrics.jsonl reports.
+    let metrics = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+    let last: serde_json::Value = serde_json::from_str(metrics.lines().last().unwrap()).unwrap();
+    let updates = last["updates"].as_u64().unwrap();
+    assert!(updates >= 2);
+    let ckpt = run.join(format!("checkpoints/step_{updates}"));
+    assert!(ckpt.join("manifest.json").is_file(), "{}", ckpt.display());
+    // The printed command continues the run (here to two more updates).
+    let total = format!("total_updates={}", updates + 2);
+    let run_s = run.display().to_string();
+    let o = icrl(&[
+        "pretrain", "--env", "darkroom", "--resume", &run_s, "--set", &total,
+    ]);
+    let text = String::from_utf8_lossy(&o.stdout);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(text.contains(&format!("{} updates", updates + 2)), "{text}");
+    std::fs::remove_dir_all(&out).unwrap();
+}
+
+#[test]
+fn second_signal_exits_at_once() {
+    let out = tmp("sigterm");
+    let (child, _) = start_long_run(&out);
+    // Two different signals back to back: they cannot merge into one.
+    signal(&child.id().to_string(), "kill -INT PID; kill -TERM PID");
+    let o = wait(child, Duration::from_secs(30));
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(o.status.code(), Some(130), "{err}");
+    assert!(err.contains("second stop signal: exiting now"), "{err}");
+    std::fs::remove_dir_all(&out).unwrap();
+}
