@@ -31,6 +31,16 @@
 //!
 //! The writer goes through `<out>.tmp` and renames it, so an interrupted run
 //! never leaves a half-written file under the final name.
+//!
+//! # Integrity
+//! The file starts with a 512-byte HDF5 *user block* (which HDF5 and h5py
+//! skip) holding `icrl-histories sha256 <hex>`: the SHA-256 of every byte
+//! after the block. The reader checks it before libhdf5 parses anything, so a
+//! damaged file is a clear error rather than a crash inside the C library
+//! (libhdf5 1.10 can segfault on damaged metadata). Files without the block
+//! (written elsewhere, DSRL's) are read as they are, with a warning. Inside,
+//! metadata uses the 1.8 object formats (checksummed) and every chunk carries
+//! a Fletcher-32 checksum.
 
 use std::fmt;
 use std::ops::Range;
@@ -42,6 +52,63 @@ use thiserror::Error;
 
 /// Version of the layout above; readers refuse any other.
 pub const FORMAT_VERSION: u32 = 1;
+
+/// Bytes of the user block that holds the file's checksum.
+const USER_BLOCK: usize = 512;
+/// How the checksum line in the user block starts.
+const CHECKSUM_TAG: &[u8] = b"icrl-histories sha256 ";
+
+/// SHA-256 (hex) of the bytes of `path` after the user block.
+fn body_sha256(path: &Path) -> std::io::Result<String> {
+    use sha2::Digest;
+    use std::io::{Read, Seek, SeekFrom};
+    let mut f = std::fs::File::open(path)?;
+    f.seek(SeekFrom::Start(USER_BLOCK as u64))?;
+    let mut hasher = sha2::Sha256::new();
+    let mut buf = vec![0u8; 1 << 16];
+    loop {
+        let n = f.read(&mut buf)?;
+        if n == 0 {
+            break;
+        }
+        hasher.update(&buf[..n]);
+    }
+    Ok(hasher
+        .finalize()
+        .iter()
+        .map(|b| format!("{b:02x}"))
+        .collect())
+}
+
+/// Writes the checksum line into the user block of a finished file.
+fn seal(path: &Path) -> std::io::Result<()> {
+    use std::io::{Seek, SeekFrom, Write};
+    let line = [CHECKSUM_TAG, body_sha256(path)?.as_bytes(), b"\n"].concat();
+    let mut f = std::fs::OpenOptions::new().write(true).open(path)?;
+    f.seek(SeekFrom::Start(0))?;
+    f.write_all(&line)?;
+    f.sync_all()
+}
+
+/// Checks the checksum in the user block. `Ok(false)`: the file has no
+/// checksum (written elsewhere); an error: the bytes do not match it.
+fn verify_seal(path: &Path) -> Result<bool, Problem> {
+    use std::io::Read;
+    let mut head = vec![0u8; CHECKSUM_TAG.len() + 64];
+    let mut f = std::fs::File::open(path).map_err(|e| Problem::Unreadable(e.to_string()))?;
+    if f.read_exact(&mut head).is_err() || !head.starts_with(CHECKSUM_TAG) {
+        return Ok(false);
+    }
+    let want = String::from_utf8_lossy(&head[CHECKSUM_TAG.len()..]).into_owned();
+    let got = body_sha256(path).map_err(|e| Problem::Unreadable(e.to_string()))?;
+    if got != want {
+        return Err(Problem::Damaged(format!(
+            "SHA-256 of its contents is {got}, the file records {want}: it was damaged or altered \
+             after writing; make it again with `icrl dataset`"
+        )));
+    }
+    Ok(true)
+}
 
 /// Rows per chunk of the per-step arrays.
 const CHUNK_ROWS: usize = 4096;
@@ -67,6 +134,8 @@ pub enum Problem {
     Invalid(String),
     /// The output path cannot receive the file.
     Output(String),
+    /// The bytes do not match the checksum the writer recorded.
+    Damaged(String),
 }
 
 impl fmt::Display for Problem {
@@ -86,6 +155,7 @@ impl fmt::Display for Problem {
             Problem::Empty(what) => write!(f, "empty: {what}"),
             Problem::Invalid(what) => write!(f, "invalid histories: {what}"),
             Problem::Output(what) => write!(f, "cannot write the file here: {what}"),
+            Problem::Damaged(what) => write!(f, "damaged: {what}"),
         }
     }
 }
@@ -401,6 +471,8 @@ fn put<T: hdf5::H5Type>(
         .shape(shape.to_vec())
         .chunk(chunk)
         .deflate(DEFLATE_LEVEL)
+        // A checksum of every chunk: damaged data is an error, not wrong values.
+        .fletcher32()
         .create(name)?
         .write_raw(data)
 }
@@ -454,7 +526,8 @@ pub fn write_histories(path: &Path, file: &HistoryFile) -> Result<(), HistoryErr
         }
     }
     let tmp = temp_path(path);
-    let result = write_raw(&tmp, file, n_obstacles);
+    let result = write_raw(&tmp, file, n_obstacles)
+        .and_then(|()| seal(&tmp).map_err(|e| hdf5::Error::from(e.to_string().as_str())));
     match result {
         Ok(()) => std::fs::rename(&tmp, path).map_err(|e| {
             // Never leave the temporary file beside an output that failed.
@@ -522,7 +595,12 @@ fn write_raw(tmp: &Path, file: &HistoryFile, n_obstacles: usize) -> hdf5::Result
         })
         .collect();
 
-    let f = hdf5::File::create(tmp)?;
+    // The 1.8+ object formats carry checksums of their metadata, so a damaged
+    // file is an error when read rather than a crash inside libhdf5.
+    let f = hdf5::File::with_options()
+        .with_fapl(|p| p.libver_v18())
+        .with_fcpl(|p| p.userblock(USER_BLOCK as u64))
+        .create(tmp)?;
     put(&f, "observations", &observations, &[n, info.obs_dim])?;
     put(
         &f,
@@ -580,6 +658,12 @@ pub fn read_histories(
     let err = |p| HistoryError::new(path, p);
     if !path.exists() {
         return Err(err(Problem::Missing));
+    }
+    if !verify_seal(path).map_err(err)? {
+        eprintln!(
+            "warning: {}: no icrl checksum (written elsewhere or by an older icrl): damage cannot be detected before libhdf5 reads it",
+            path.display()
+        );
     }
     let f = hdf5::File::open(path).map_err(|e| err(Problem::Unreadable(e.to_string())))?;
     let malformed = |what: String| err(Problem::Malformed(what));
@@ -842,11 +926,39 @@ mod tests {
         let cut = dir.join("cut.h5");
         std::fs::write(&cut, &bytes[..bytes.len() / 2]).unwrap();
         let (p, msg) = problem_of(&cut, None);
-        assert!(
-            matches!(p, Problem::Unreadable(_) | Problem::Malformed(_)),
-            "{msg}"
-        );
+        assert!(matches!(p, Problem::Damaged(_)), "{msg}");
+        // One flipped bit anywhere after the user block: caught by the
+        // checksum before libhdf5 parses anything.
+        for at in [
+            USER_BLOCK,
+            USER_BLOCK + 100,
+            bytes.len() / 2,
+            bytes.len() - 1,
+        ] {
+            let mut b = bytes.clone();
+            b[at] ^= 0x10;
+            std::fs::write(&cut, &b).unwrap();
+            let (p, msg) = problem_of(&cut, None);
+            assert!(matches!(p, Problem::Damaged(_)), "byte {at}: {msg}");
+            assert!(msg.contains("make it again with `icrl dataset`"), "{msg}");
+        }
+        // Without the checksum (a file written elsewhere) it still reads.
+        let mut b = bytes.clone();
+        b[..CHECKSUM_TAG.len()].fill(0);
+        std::fs::write(&cut, &b).unwrap();
+        assert_eq!(read_histories(&cut, None).unwrap(), tiny_file(2));
         std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    /// Edits a written file through HDF5, then re-seals it (as a writer of
+    /// such a file would have), so the reader's checks behind the checksum
+    /// are what the test sees.
+    fn edit(path: &Path, change: impl FnOnce(&hdf5::File)) {
+        {
+            let f = hdf5::File::open_rw(path).unwrap();
+            change(&f);
+        }
+        seal(path).unwrap();
     }
 
     #[test]
@@ -857,13 +969,12 @@ mod tests {
         let (p, msg) = problem_of(&path, Some("point"));
         assert!(matches!(p, Problem::WrongEnv { .. }), "{msg}");
         assert!(msg.contains("darkroom") && msg.contains("point"), "{msg}");
-        {
-            let f = hdf5::File::open_rw(&path).unwrap();
+        edit(&path, |f| {
             f.attr("format_version")
                 .unwrap()
                 .write_scalar(&99u32)
                 .unwrap();
-        }
+        });
         let (p, msg) = problem_of(&path, Some("darkroom"));
         assert!(
             matches!(
@@ -890,15 +1001,14 @@ mod tests {
         // A file whose per-history table names a history without steps.
         let mut file = tiny_file(2);
         write_histories(&path, &file).unwrap();
-        {
-            let f = hdf5::File::open_rw(&path).unwrap();
+        edit(&path, |f| {
             f.unlink("cost_limit").unwrap();
-            put(&f, "cost_limit", &[0.0f32, 2.5, 5.0], &[3]).unwrap();
+            put(f, "cost_limit", &[0.0f32, 2.5, 5.0], &[3]).unwrap();
             f.unlink("task_goal").unwrap();
-            put(&f, "task_goal", &[0i64; 6], &[3, 2]).unwrap();
+            put(f, "task_goal", &[0i64; 6], &[3, 2]).unwrap();
             f.unlink("task_obstacles").unwrap();
-            put(&f, "task_obstacles", &[0i64; 150], &[3, 25, 2]).unwrap();
-        }
+            put(f, "task_obstacles", &[0i64; 150], &[3, 25, 2]).unwrap();
+        });
         let (p, msg) = problem_of(&path, None);
         assert!(matches!(p, Problem::Empty(_)), "{msg}");
         assert!(msg.contains("history 2"), "{msg}");
@@ -911,10 +1021,11 @@ mod tests {
 
     /// Replaces dataset `name` of a written file with `data` (same shape).
     fn overwrite(path: &Path, name: &str, data: &[f32]) {
-        let f = hdf5::File::open_rw(path).unwrap();
-        let shape = f.dataset(name).unwrap().shape();
-        f.unlink(name).unwrap();
-        put(&f, name, data, &shape).unwrap();
+        edit(path, |f| {
+            let shape = f.dataset(name).unwrap().shape();
+            f.unlink(name).unwrap();
+            put(f, name, data, &shape).unwrap();
+        });
     }
 
     #[test]
