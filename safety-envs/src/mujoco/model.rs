@@ -121,6 +121,9 @@ impl Model {
                 message: String::from("no such file"),
             });
         }
+        if let Ok(text) = std::fs::read(path) {
+            preflight(&String::from_utf8_lossy(&text), &source_name)?;
+        }
         let c_path = path_to_cstring(path, &source_name)?;
         load_xml(&c_path, std::ptr::null(), source_name)
     }
@@ -131,6 +134,7 @@ impl Model {
     pub fn from_xml_str(xml: &str) -> Result<Self, MujocoError> {
         const NAME: &str = "model.xml";
         let source_name = String::from("<xml string>");
+        preflight(xml, &source_name)?;
         let bytes = xml.as_bytes();
         let size = c_int::try_from(bytes.len()).map_err(|_| MujocoError::Load {
             source_name: source_name.clone(),
@@ -355,6 +359,58 @@ fn path_to_cstring(path: &Path, source_name: &str) -> Result<CString, MujocoErro
 }
 
 /// Runs `mj_loadXML` and wraps the result, with MuJoCo's message on failure.
+/// Refuses what MuJoCo 2.2's parser does not survive (found by fuzzing the
+/// loader, `icrl/tests/fuzz_loaders.rs`): an integer beyond the 32-bit
+/// range in any attribute (MuJoCo reads it into an `int` and overflows) and a
+/// texture whose `width * height * 3` bytes overflow MuJoCo's `int` size
+/// arithmetic (it then writes past its buffer).
+fn preflight(xml: &str, source_name: &str) -> Result<(), MujocoError> {
+    let refuse = |message: String| {
+        Err(MujocoError::Load {
+            source_name: source_name.to_string(),
+            message,
+        })
+    };
+    // Attribute values: the text between `="` and the next `"`.
+    let mut rest = xml;
+    while let Some(at) = rest.find("=\"") {
+        let after = &rest[at + 2..];
+        let Some(end) = after.find('"') else { break };
+        for token in after[..end].split_whitespace() {
+            let digits = token.strip_prefix(['-', '+']).unwrap_or(token);
+            if !digits.is_empty()
+                && digits.bytes().all(|b| b.is_ascii_digit())
+                && digits.parse::<u64>().map_or(true, |v| v > i32::MAX as u64)
+            {
+                return refuse(format!(
+                    "the number {token} is outside the 32-bit range MuJoCo reads integers into"
+                ));
+            }
+        }
+        rest = &after[end + 1..];
+    }
+    // Textures: width * height * 3 bytes must fit MuJoCo's int sizes.
+    let mut rest = xml;
+    while let Some(at) = rest.find("<texture") {
+        let tag = &rest[at..];
+        let tag = &tag[..tag.find('>').unwrap_or(tag.len())];
+        let attr = |name: &str| -> u64 {
+            tag.split_whitespace()
+                .find_map(|kv| kv.strip_prefix(name)?.strip_prefix("=\""))
+                .and_then(|v| v.trim_end_matches(['"', '/']).parse::<u64>().ok())
+                .unwrap_or(0)
+        };
+        let (w, h) = (attr("width"), attr("height"));
+        if w.saturating_mul(h).saturating_mul(3 * 6) > i32::MAX as u64 {
+            return refuse(format!(
+                "a texture of {w} x {h} texels is more than MuJoCo can size (width * height * 3 * 6 faces must stay below 2^31)"
+            ));
+        }
+        rest = &rest[at + "<texture".len()..];
+    }
+    Ok(())
+}
+
 fn load_xml(
     filename: &CString,
     vfs: *const sys::mjVFS,
@@ -447,6 +503,29 @@ mod tests {
         assert_eq!(model.id(ObjType::Body, "b").unwrap(), 1);
         assert_eq!(model.id(ObjType::Geom, "g").unwrap(), 0);
         assert!(model.id(ObjType::Body, "nope").is_err());
+    }
+
+    #[test]
+    fn numbers_and_textures_mujoco_would_overflow_on_are_refused() {
+        // Found by fuzzing: these crashed MuJoCo 2.2 (out-of-bounds writes).
+        let texture = |w: &str| {
+            format!(
+                r#"<mujoco><asset><texture name="t" type="2d" builtin="checker" width="{w}" height="256"/></asset>
+                <worldbody><geom size="1 1 .1" type="plane"/></worldbody></mujoco>"#
+            )
+        };
+        let e = Model::from_xml_str(&texture("99999999999"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("99999999999 is outside the 32-bit range"), "{e}");
+        let e = Model::from_xml_str(&texture("2000000"))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("a texture of 2000000 x 256 texels"), "{e}");
+        Model::from_xml_str(&texture("256")).unwrap();
+        // Large floats and negative numbers in range are untouched.
+        let big = BOX.replace("pos=\"0 0 1\"", "pos=\"-2147483647 0 1e30\"");
+        Model::from_xml_str(&big).unwrap();
     }
 
     #[test]
