@@ -292,6 +292,31 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
     cfg.validate()?;
     // A bad --out fails now, not after hours of generation.
     crate::histories::check_output_path(&cmd.out)?;
+    // All histories are held, then concatenated for writing: check they fit.
+    {
+        let probe = safety_envs::make_env(env, &safety_envs::EnvOptions::default())?;
+        let o = probe.observation_space().flat_dim() as f64;
+        let a = match probe.action_space() {
+            safety_envs::Space::Discrete { .. } => 1.0,
+            safety_envs::Space::Box { low, .. } => low.len() as f64,
+        };
+        let steps = cfg.tasks as f64 * cfg.cost_limits.len() as f64 * cfg.steps as f64;
+        let mut m = crate::guard::MemoryEstimate {
+            levers: "--tasks, --steps or the number of --cost-limits".into(),
+            ..Default::default()
+        };
+        m.add(
+            "histories and their copy for writing",
+            2.0 * 4.0 * steps * (2.0 * o + a + 6.0),
+        );
+        m.check().map_err(DatasetError::Config)?;
+    }
+    if cfg.threads > 1024 {
+        return Err(DatasetError::Config(format!(
+            "threads ({}) must be at most 1024",
+            cfg.threads
+        )));
+    }
     let total = (cfg.tasks * cfg.cost_limits.len() * cfg.steps) as u64;
     let bar = indicatif::ProgressBar::new(total);
     bar.set_style(

@@ -188,9 +188,9 @@ impl EppoConfig {
             ("checkpoint_every", i128::from(self.checkpoint_every)),
         ])
         .or_else(bad)?;
-        if self.torch_threads < 0 {
+        if !(0..=1024).contains(&self.torch_threads) {
             return bad(format!(
-                "torch_threads = {}: must be 0 (libtorch's default) or more",
+                "torch_threads = {}: must be in [0, 1024] (0 keeps libtorch's default)",
                 self.torch_threads
             ));
         }

@@ -587,6 +587,9 @@ impl EvalOptions {
                 return bad(format!("{name} 0: must be at least 1"));
             }
         }
+        if self.threads > 1024 {
+            return bad(format!("--threads {}: must be at most 1024", self.threads));
+        }
         if self.budgets.is_none() && self.n_budgets == 0 {
             return bad("--n-budgets 0: must be at least 1 (or give --budgets)".into());
         }

@@ -109,7 +109,11 @@ fn ad_train(
 #[test]
 fn eppo_settings_are_checked_before_anything_runs() {
     let out = tmp("eppo-settings").join("runs");
-    let cases: [(&[&str], &[&str]); 9] = [
+    let cases: [(&[&str], &[&str]); 10] = [
+        (
+            &["torch_threads=100000"],
+            &["torch_threads = 100000: must be in [0, 1024]"],
+        ),
         (
             &["lr=nan"],
             &["lr = NaN: must be a finite number in (0, 1]"],

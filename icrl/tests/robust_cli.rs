@@ -73,6 +73,21 @@ fn bad_settings_and_arguments_are_refused_clearly() {
         t.elapsed() < Duration::from_secs(30),
         "refused before generating"
     );
+    let out_file = dir.join("h.h5").display().to_string();
+    refused(
+        &icrl(&[
+            "dataset",
+            "--env",
+            "darkroom",
+            "--out",
+            &out_file,
+            "--tasks",
+            "1000000000",
+            "--steps",
+            "1000000",
+        ]),
+        "needs about",
+    );
     let as_dir = dir.display().to_string();
     refused(
         &icrl(&["dataset", "--env", "darkroom", "--out", &as_dir]),
@@ -96,6 +111,10 @@ fn bad_settings_and_arguments_are_refused_clearly() {
     refused(
         &eval(&["--max-episode-steps", "0"]),
         "--max-episode-steps 0",
+    );
+    refused(
+        &eval(&["--threads", "100000"]),
+        "--threads 100000: must be at most 1024",
     );
     refused(
         &icrl(&["eval", "--from", "/nonexistent/reports"]),

@@ -85,7 +85,6 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
     let threads = args
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    tch::set_num_threads(threads as i32);
     let opts = EvalOptions {
         env,
         tasks: args.tasks,
@@ -110,6 +109,7 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
     // Bad options and an unwritable output folder fail before any loading.
     opts.validate()?;
     eval_cmd::check_output_dir(&opts.out)?;
+    tch::set_num_threads(threads as i32);
     let agents = args
         .checkpoint
         .iter()
