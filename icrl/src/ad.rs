@@ -1249,10 +1249,9 @@ impl AdAgent {
     /// (weights at the top of the run folder) loads with a warning that its
     /// bytes cannot be verified. Weights holding NaN or infinity are refused.
     pub fn load(path: &Path) -> Result<(Self, CheckpointInfo), AdError> {
-        let (run_dir, ckpt) = if path.join(crate::checkpoint::MANIFEST).is_file() {
-            let (run, ckpt) = RunDir::resolve_resume(path)?;
-            (run.path, ckpt)
-        } else if path.join("checkpoints").is_dir() {
+        let (run_dir, ckpt) = if path.join(crate::checkpoint::MANIFEST).is_file()
+            || path.join("checkpoints").is_dir()
+        {
             let (run, ckpt) = RunDir::resolve_resume(path)?;
             (run.path, ckpt)
         } else {

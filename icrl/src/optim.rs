@@ -93,10 +93,7 @@ impl Adam {
     /// step taken, when the loss or a gradient is not finite: learners use
     /// [`Adam::try_backward_step`] to stop on that).
     pub fn backward_step(&mut self, loss: &Tensor) -> f64 {
-        match self.try_backward_step(loss) {
-            Ok(norm) => norm,
-            Err(_) => f64::NAN,
-        }
+        self.try_backward_step(loss).unwrap_or(f64::NAN)
     }
 
     /// [`Adam::backward_step`] that refuses to step when the loss or the

@@ -25,8 +25,7 @@ fn tmp(name: &str) -> PathBuf {
 fn pretrain_err(out: &Path, sets: &[&str]) -> String {
     let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
     eppo::pretrain_command("darkroom", "quick", None, &sets, out)
-        .err()
-        .expect("refused")
+        .expect_err("refused")
         .to_string()
 }
 
@@ -154,13 +153,16 @@ fn eppo_settings_are_checked_before_anything_runs() {
     fs::remove_dir_all(out.parent().unwrap()).unwrap();
 }
 
+/// A name, a change to a valid AD config, and the error it must give.
+type AdCase = (&'static str, fn(&mut AdConfig), &'static str);
+
 /// Class 1 and 2 for AD: the same checks, and data that holds NaN or an
 /// action outside the action space is refused before training.
 #[test]
 fn ad_settings_and_data_are_checked_before_training() {
     let dir = tmp("ad-settings");
     let data = tiny_ad_data();
-    let cases: [(&str, fn(&mut AdConfig), &str); 6] = [
+    let cases: [AdCase; 6] = [
         (
             "lr",
             |c| c.learning_rate = f64::NAN,

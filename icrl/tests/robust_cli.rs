@@ -129,6 +129,8 @@ fn bad_settings_and_arguments_are_refused_clearly() {
 
 /// Starts a tiny EPPO run that would take very long, and waits until it has
 /// logged its first round (so the signal handler is installed).
+// The child goes back to the caller, which waits for it (`wait` below).
+#[allow(clippy::zombie_processes)]
 fn start_long_run(out: &Path) -> (Child, PathBuf) {
     let sets = [
         "max_episode_steps=6",
@@ -157,7 +159,7 @@ fn start_long_run(out: &Path) -> (Child, PathBuf) {
     for s in sets {
         cmd.args(["--set", s]);
     }
-    let child = cmd
+    let mut child = cmd
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
         .spawn()
@@ -175,10 +177,14 @@ fn start_long_run(out: &Path) -> (Child, PathBuf) {
         {
             return (child, run);
         }
-        assert!(
-            t.elapsed() < Duration::from_secs(120),
-            "the run never logged a round"
-        );
+        if t.elapsed() > Duration::from_secs(120) {
+            let _ = child.kill();
+            let out = child.wait_with_output().unwrap();
+            panic!(
+                "the run never logged a round: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+        }
         std::thread::sleep(Duration::from_millis(50));
     }
 }
@@ -188,6 +194,7 @@ fn wait(mut child: Child, limit: Duration) -> Output {
     while child.try_wait().unwrap().is_none() {
         if t.elapsed() > limit {
             let _ = child.kill();
+            let _ = child.wait();
             panic!("the run did not stop within {limit:?}");
         }
         std::thread::sleep(Duration::from_millis(20));
