@@ -293,6 +293,29 @@ mod tests {
             Vec::<f32>::try_from(&b.params[0].2).unwrap(),
             Vec::<f32>::try_from(&a.params[0].2).unwrap()
         );
+        // Damaged moments or step are refused, naming the entry.
+        let bad = dir.join("bad.safetensors");
+        let m = Tensor::from_slice(&[0.1f32, f32::NAN]);
+        let v = Tensor::from_slice(&[0.1f32, 0.2]);
+        let step = Tensor::from_slice(&[3i64]);
+        let write = |entries: &[(&str, &Tensor)]| {
+            let named: Vec<(String, Tensor)> = entries
+                .iter()
+                .map(|(n, t)| (n.to_string(), t.shallow_clone()))
+                .collect();
+            Tensor::write_safetensors(&named, &bad).unwrap();
+        };
+        write(&[("m/x", &m), ("v/x", &v), ("step", &step)]);
+        assert_eq!(
+            b.load(&bad).unwrap_err(),
+            "`m/x` holds NaN, infinite values"
+        );
+        write(&[("m/x", &v), ("v/x", &(-&v)), ("step", &step)]);
+        assert!(b.load(&bad).unwrap_err().contains("`v/x` holds NaN, infinite or negative"));
+        let empty = Tensor::from_slice::<i64>(&[]);
+        write(&[("m/x", &v), ("v/x", &v), ("step", &empty)]);
+        assert_eq!(b.load(&bad).unwrap_err(), "`step` holds 0 values, expected 1");
+        assert_eq!(b.step_count(), 1, "a refused file changes nothing");
         std::fs::remove_dir_all(&dir).unwrap();
     }
 }

@@ -25,7 +25,11 @@ pub fn install() -> Result<(), String> {
             );
         } else {
             eprintln!("\nsecond stop signal: exiting now, without a checkpoint");
-            std::process::exit(i32::from(EXIT_INTERRUPTED));
+            // `_exit`, not `std::process::exit`: exit handlers and static
+            // destructors (libtorch's, OpenMP's) would run while the training
+            // thread is still inside libtorch, and can crash the exit itself.
+            // SAFETY: `_exit` ends the process at once; nothing runs after it.
+            unsafe { libc::_exit(i32::from(EXIT_INTERRUPTED)) }
         }
     })
     .map_err(|e| format!("cannot install the SIGINT/SIGTERM handler: {e}"))

@@ -456,8 +456,9 @@ fn mutate_safetensors(rng: &mut ChaCha8Rng, bytes: &mut Vec<u8>) -> String {
     format!("safetensors header: {desc}")
 }
 
-/// A small EPPO checkpoint and a small AD run, trained for real.
-fn checkpoints(root: &Path) -> (PathBuf, PathBuf) {
+/// A small EPPO checkpoint and a small AD run, trained for real (with the
+/// EPPO run's configuration, for resuming it).
+fn checkpoints(root: &Path) -> (PathBuf, PathBuf, icrl::eppo::EppoConfig) {
     let sets: Vec<String> = [
         "max_episode_steps=6",
         "k_min=2",
@@ -482,6 +483,7 @@ fn checkpoints(root: &Path) -> (PathBuf, PathBuf) {
     let mut table = icrl::presets::preset_table("eppo", "darkroom", "quick").unwrap();
     icrl::presets::apply_overrides(&mut table, &sets).unwrap();
     let cfg: icrl::eppo::EppoConfig = icrl::presets::resolve("fuzz", table).unwrap();
+    let eppo_cfg = cfg.clone();
     let eppo = icrl::eppo::train(&icrl::eppo::PretrainOptions {
         env: EnvName::DarkRoom,
         cfg,
@@ -519,13 +521,13 @@ fn checkpoints(root: &Path) -> (PathBuf, PathBuf) {
         &mut |_| {},
     )
     .unwrap();
-    (eppo, ad)
+    (eppo, ad, eppo_cfg)
 }
 
 #[test]
 fn checkpoint_loaders_survive_mutated_checkpoints() {
     let root = tmp("ckpt");
-    let (eppo, ad) = checkpoints(&root);
+    let (eppo, ad, eppo_cfg) = checkpoints(&root);
     let mut rng = ChaCha8Rng::seed_from_u64(seed() ^ 0xc4e7);
     let mut ok = 0;
     for case in 0..cases() {
@@ -581,6 +583,12 @@ fn checkpoint_loaders_survive_mutated_checkpoints() {
         ok += usize::from(run_case("checkpoint", case, &desc, || {
             icrl::eval_load::load_checkpoint(&run, EnvName::DarkRoom).map(|_| ())
         }));
+        // Resuming reads the optimizer's moments too.
+        if !is_ad {
+            run_case("resume", case, &desc, || {
+                icrl::eppo::Learner::resume(eppo_cfg.clone(), EnvName::DarkRoom, &ckpt).map(|_| ())
+            });
+        }
         let _ = std::fs::remove_dir_all(&run);
     }
     eprintln!(
