@@ -993,7 +993,9 @@ pub fn train(
 
 /// What supervised pretraining with `cfg` on `steps` dataset steps will
 /// allocate: the tokenised dataset, parameters with their gradients and
-/// Adam's moments, one sampled batch and its activations.
+/// Adam's moments, one sampled batch and its activations. With a CUDA device
+/// (AD takes one when libtorch sees it) only the host's part is counted: the
+/// tokens and one sampled batch.
 pub fn memory_estimate(
     cfg: &AdConfig,
     spec: &AdSpec,
@@ -1012,6 +1014,10 @@ pub fn memory_estimate(
         ..Default::default()
     };
     m.add("tokenised dataset", 4.0 * steps as f64 * (k + a + 2.0));
+    if tch::Cuda::is_available() {
+        m.add("one sampled batch", 4.0 * b * t * (k + a));
+        return m;
+    }
     m.add("parameters", 4.0 * params);
     m.add("gradients and Adam moments", 3.0 * 4.0 * params);
     m.add(

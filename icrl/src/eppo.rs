@@ -279,7 +279,9 @@ pub fn parse_device(name: &str) -> Result<Device, EppoError> {
 /// the online and target networks, their gradients and Adam's two moments;
 /// one batch's activations are the transformer's saved tensors for
 /// `batch_size` sequences of `max_len` steps (plus the target's forward); the
-/// acting cache holds keys and values of `n_envs` trajectories.
+/// acting cache holds keys and values of `n_envs` trajectories. On `cuda`
+/// only the replay (host memory) is counted: the rest lives on the GPU,
+/// whose memory libtorch reports through no API tch binds.
 pub fn memory_estimate(cfg: &EppoConfig, spec: &NetSpec) -> crate::guard::MemoryEstimate {
     use crate::guard::{transformer_activation_bytes, transformer_parameters};
     let f = |x: usize| x as f64;
@@ -309,9 +311,12 @@ pub fn memory_estimate(cfg: &EppoConfig, spec: &NetSpec) -> crate::guard::Memory
                 .into(),
         ..Default::default()
     };
+    m.add("replay", f(cfg.replay_capacity) * step_bytes);
+    if cfg.device == "cuda" {
+        return m;
+    }
     m.add("parameters (online and target)", 2.0 * 4.0 * params);
     m.add("gradients and Adam moments", 3.0 * 4.0 * params);
-    m.add("replay", f(cfg.replay_capacity) * step_bytes);
     m.add(
         "one batch's activations",
         1.5 * transformer_activation_bytes(&cfg.model, b) + 2.0 * 4.0 * b * t * f(spec.token_dim()),

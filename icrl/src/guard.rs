@@ -218,22 +218,20 @@ impl MemoryEstimate {
 
 /// Parameters of the shared transformer (see `model.rs`): per block an
 /// attention (qkv and output projections) and an MLP, two layer norms; a
-/// final norm; a learned position table when positions are learned.
+/// final norm; a position table of `max_len` rows (learned, or the fixed
+/// sinusoids, which take the same memory without being trained).
 pub fn transformer_parameters(cfg: &crate::model::Config) -> f64 {
     let d = cfg.d_model as f64;
     let ff = cfg.d_ff as f64;
     let block = (d * 3.0 * d + 3.0 * d) + (d * d + d) + (d * ff + ff) + (ff * d + d) + 4.0 * d;
-    let positions = match cfg.positions {
-        crate::model::Positions::Learned => cfg.max_len as f64 * d,
-        crate::model::Positions::Sinusoidal => 0.0,
-    };
-    cfg.n_layers as f64 * block + 2.0 * d + positions
+    cfg.n_layers as f64 * block + 2.0 * d + cfg.max_len as f64 * d
 }
 
 /// Bytes of float32 activations the transformer keeps for backward over one
-/// batch of `batch` sequences: per block the residual stream, norms, q/k/v,
-/// the MLP hidden layer, and the (B, H, T, T) attention weights with their
-/// softmax and dropout copies.
+/// batch of `batch` sequences: per block the residual stream, norms, q/k/v
+/// and the MLP hidden layer. Causal attention goes through libtorch's fused
+/// kernel, which keeps O(T) per head; with attention dropout it may take
+/// the math path instead, which keeps the (B, H, T, T) weights: counted then.
 pub fn transformer_activation_bytes(cfg: &crate::model::Config, batch: f64) -> f64 {
     let (d, ff, t, h) = (
         cfg.d_model as f64,
@@ -241,7 +239,12 @@ pub fn transformer_activation_bytes(cfg: &crate::model::Config, batch: f64) -> f
         cfg.max_len as f64,
         cfg.n_heads as f64,
     );
-    let per_block = batch * t * (10.0 * d + 2.0 * ff) + 3.0 * batch * h * t * t;
+    let weights = if cfg.attn_dropout > 0.0 {
+        2.0 * batch * h * t * t
+    } else {
+        2.0 * batch * h * t
+    };
+    let per_block = batch * t * (10.0 * d + 2.0 * ff) + weights;
     4.0 * (cfg.n_layers as f64 * per_block + 2.0 * batch * t * d)
 }
 

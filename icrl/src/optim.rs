@@ -311,10 +311,17 @@ mod tests {
             "`m/x` holds NaN, infinite values"
         );
         write(&[("m/x", &v), ("v/x", &(-&v)), ("step", &step)]);
-        assert!(b.load(&bad).unwrap_err().contains("`v/x` holds NaN, infinite or negative"));
+        assert!(
+            b.load(&bad)
+                .unwrap_err()
+                .contains("`v/x` holds NaN, infinite or negative")
+        );
         let empty = Tensor::from_slice::<i64>(&[]);
         write(&[("m/x", &v), ("v/x", &v), ("step", &empty)]);
-        assert_eq!(b.load(&bad).unwrap_err(), "`step` holds 0 values, expected 1");
+        assert_eq!(
+            b.load(&bad).unwrap_err(),
+            "`step` holds 0 values, expected 1"
+        );
         assert_eq!(b.step_count(), 1, "a refused file changes nothing");
         std::fs::remove_dir_all(&dir).unwrap();
     }
