@@ -1590,6 +1590,11 @@ mod tests {
         assert_eq!((m.method.as_str(), m.updates), ("ad", 60));
         assert_eq!(m.sha256.len(), 3, "model, adam, state: {:?}", m.sha256);
         assert!(dir.join("checkpoints/step_120").is_dir());
+        // One step folder loads too, for evaluation of an earlier checkpoint.
+        let (_, info) = AdAgent::load(&step_60).unwrap();
+        assert_eq!((info.updates_done, info.dir.clone()), (60, step_60.clone()));
+        let loaded = crate::eval_load::load_checkpoint(&step_60, EnvName::DarkRoom).unwrap();
+        assert_eq!(loaded.checkpoint, Some(step_60.clone()));
 
         // Resuming from step 60 redoes 61..120: the metrics lines logged after
         // the checkpoint are dropped, so no update is counted twice.
