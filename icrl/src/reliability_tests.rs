@@ -448,3 +448,33 @@ fn every_shipped_preset_fits_the_memory_estimate() {
         }
     }
 }
+
+/// Class 1 and 2 for PPO-Lagrangian (the learner behind `icrl dataset`).
+#[test]
+fn ppo_lagrangian_settings_are_checked() {
+    use crate::ppo_lagrangian::PpoLagConfig;
+    let cases: [(fn(&mut PpoLagConfig), &str); 5] = [
+        (
+            |c| c.learning_rate = f64::NAN,
+            "learning_rate = NaN: must be a finite number in (0, 1]",
+        ),
+        (
+            |c| c.ent_coef = -0.1,
+            "ent_coef = -0.1: must be a finite number in [0, inf)",
+        ),
+        (|c| c.max_grad_norm = f64::INFINITY, "max_grad_norm = inf"),
+        (|c| c.minibatches = 0, "minibatches = 0: must be at least 1"),
+        (
+            |c| c.update_epochs = 0,
+            "update_epochs = 0: must be at least 1",
+        ),
+    ];
+    for (set, want) in cases {
+        let mut cfg = PpoLagConfig::darkroom();
+        set(&mut cfg);
+        let e = cfg.validate().unwrap_err().to_string();
+        assert!(e.contains(want), "{e}");
+    }
+    PpoLagConfig::darkroom().validate().unwrap();
+    PpoLagConfig::mujoco().validate().unwrap();
+}
