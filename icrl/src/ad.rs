@@ -866,6 +866,31 @@ pub fn train(
                 differ.join(", ")
             )));
         }
+        // The data must be what the run was trained on: same sizes and the
+        // same observation normalisation (the agent reads spec.json).
+        let spec_path = dir.join("spec.json");
+        let text = fs::read_to_string(&spec_path).map_err(|e| io_err(&spec_path, e))?;
+        let saved: AdSpec = serde_json::from_str(&text).map_err(|e| io_err(&spec_path, e))?;
+        fn key(s: &AdSpec) -> (usize, usize, bool, &[f32], &[f32], &str) {
+            (
+                s.obs_dim,
+                s.action_dim,
+                s.discrete,
+                &s.obs_mean,
+                &s.obs_std,
+                &s.dataset_config,
+            )
+        }
+        if key(&saved) != key(&spec) {
+            return Err(AdError::Config(format!(
+                "cannot resume {}: the dataset {} is not the one the run was trained on ({}, \
+                 recorded in {}); resume with that dataset or start a new run",
+                dir.display(),
+                req.dataset_path.display(),
+                saved.dataset,
+                spec_path.display()
+            )));
+        }
         state = load_checkpoint_into(ckpt, cfg, &spec, &mut vs, &mut opt)?;
         if state.update > cfg.updates {
             return Err(AdError::Config(format!(
@@ -1632,6 +1657,19 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("learning_rate: 0.003 -> 0.001"), "{e}");
+        // Other data (here: every observation shifted) is refused by name.
+        let mut shifted = data.clone();
+        for h in &mut shifted.histories {
+            h.observations.iter_mut().for_each(|o| *o += 1.0);
+        }
+        let other_data = TrainRequest {
+            data: &shifted,
+            ..longer.clone()
+        };
+        let e = train(&other_data, &mut |_| {}, &mut |_| {})
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("is not the one the run was trained on"), "{e}");
         // Fewer updates than done: refused with the fix.
         let step_140 = dir.join("checkpoints/step_140");
         let shorter = TrainRequest {

@@ -1461,18 +1461,18 @@ pub struct PretrainReport {
 
 /// Algorithm 1: collect rounds of trajectories, update, checkpoint, log.
 pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
-    let (run, mut learner) = match &opts.resume {
+    let (run, mut learner, resumed_from) = match &opts.resume {
         Some(path) => {
             let (run, ckpt) = RunDir::resolve_resume(path)?;
             let learner = Learner::resume(opts.cfg.clone(), opts.env, &ckpt)?;
             // Rounds logged after the checkpoint are redone: drop their records.
             crate::checkpoint::truncate_metrics(&run.metrics_path(), "updates", learner.updates)?;
-            (run, learner)
+            (run, learner, Some(ckpt))
         }
         None => {
             let learner = Learner::new(opts.cfg.clone(), opts.env)?;
             let run = RunDir::create(&opts.out, opts.env.as_str(), "eppo", opts.cfg.seed)?;
-            (run, learner)
+            (run, learner, None)
         }
     };
     let cfg = learner.cfg.clone();
@@ -1506,7 +1506,9 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
     // stderr instead, at most every 30 s, so logs show progress.
     let log_lines = opts.progress && bar.is_hidden();
     let mut last_log_line = Instant::now();
-    let mut last_ckpt = run.latest_checkpoint()?.unwrap_or_default();
+    // The checkpoint resumed from is the last good one (newer step folders, if
+    // resuming an earlier one, belong to the abandoned continuation).
+    let mut last_ckpt = resumed_from.unwrap_or_default();
     // A NaN update names the last good checkpoint (never one of NaN weights).
     let non_finite = |e: EppoError, last: &Path| match e {
         EppoError::NonFinite { update, what, .. } => EppoError::NonFinite {
