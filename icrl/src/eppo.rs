@@ -243,7 +243,9 @@ pub struct NetSpec {
     pub obs_dim: usize,
     /// Per-entry observation bounds used to map observations to [-1, 1]
     /// (entries with infinite bounds pass through unchanged).
+    #[serde(with = "crate::json_bounds::lower")]
     pub obs_low: Vec<f32>,
+    #[serde(with = "crate::json_bounds::upper")]
     pub obs_high: Vec<f32>,
     /// `Some(n)` for n discrete actions, `None` for a box.
     pub n_actions: Option<usize>,

@@ -5,6 +5,7 @@
 //! - [`model`]: the one causal transformer (with KV cache) every learner shares.
 //! - [`optim`]: Adam whose moments can be checkpointed.
 //! - [`checkpoint`]: run folders, atomic checkpoints with manifests, metrics (JSONL).
+//! - [`json_bounds`]: space bounds (possibly infinite) in checkpoint JSON.
 //! - [`presets`]: built-in TOML presets and `--set key=value` overrides.
 //! - [`task_seeds`]: the split of task seeds between pretraining and evaluation.
 //!
@@ -31,6 +32,7 @@ pub mod eval;
 pub mod eval_cmd;
 pub mod eval_load;
 pub mod histories;
+pub mod json_bounds;
 pub mod model;
 pub mod optim;
 pub mod plots;
