@@ -75,6 +75,11 @@ struct DatasetArgs {
     /// Which learner makes the histories.
     #[arg(long, default_value = "ppo-lagrangian", value_parser = ["ppo-lagrangian", "noisy-optimal"])]
     source: String,
+    /// Point and Car: MuJoCo physics steps per agent action, the macro action
+    /// (default 50 = 5 Safety-Gymnasium steps x 10 physics steps each);
+    /// recorded in the file.
+    #[arg(long, value_name = "N")]
+    physics_steps_per_action: Option<usize>,
 }
 
 fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
@@ -94,13 +99,16 @@ fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
         seed: args.seed,
         threads,
         source,
+        physics_steps_per_action: args.physics_steps_per_action,
     })?;
     println!(
-        "wrote {}: {} histories, {} steps, {} episodes, {:.1} MB in {:.0} s ({:.0} steps/s); \
+        "wrote {}: {} histories, {} steps{}, {} episodes, {:.1} MB in {:.0} s ({:.0} steps/s); \
          first 10% of episodes: return {:.3} cost {:.3}; last 10%: return {:.3} cost {:.3}",
         r.out.display(),
         r.histories,
         r.steps,
+        r.physics_steps_per_action
+            .map_or(String::new(), |n| format!(" of {n} physics steps each")),
         r.episodes,
         r.bytes as f64 / 1e6,
         r.seconds,
