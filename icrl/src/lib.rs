@@ -21,6 +21,7 @@
 //! - [`eval_cmd`]: the `eval` command (checkpoints in, JSON/CSV/figures/GIF out).
 //! - [`eval_load`]: loading EPPO and AD checkpoints for evaluation.
 //! - [`plots`]: the paper's evaluation figures and animations.
+//! - [`run_summary`]: a finished run's learning trend against a random policy, and its eval command.
 //! - [`stats`]: mean and standard error.
 
 pub mod ad;
@@ -38,6 +39,7 @@ pub mod optim;
 pub mod plots;
 pub mod ppo_lagrangian;
 pub mod presets;
+pub mod run_summary;
 pub mod stats;
 pub mod task_seeds;
 
