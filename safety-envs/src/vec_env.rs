@@ -272,11 +272,13 @@ impl VecEnv {
                 }));
             }
         }
-        let (d, chunk, act_dim, auto_reset) =
-            (self.obs_dim, self.chunk, self.act_dim, self.auto_reset);
+        let (d, act_dim, auto_reset) = (self.obs_dim, self.act_dim, self.auto_reset);
         let parallel = self.threads_in_use() > 1;
-        // One job per chunk of `chunk` environments: a fixed partition, so the
-        // work done for each environment never depends on the thread count.
+        // In parallel, one job per chunk of `self.chunk` environments; inline,
+        // one job for all, so a VecEnv that stays inline costs what one
+        // thread does. Each environment's work never depends on the
+        // partition, so the results are the same either way.
+        let chunk = if parallel { self.chunk } else { n };
         let jobs = self
             .slots
             .chunks_mut(chunk)
