@@ -1310,6 +1310,7 @@ mod tests {
         for t in 0..100 {
             let input = StepInput {
                 obs: &[4.0, 4.0, 4.0, 5.0],
+                arrived_obs: &[4.0, 4.0, 4.0, 5.0],
                 prev_action: &[0.0; 10],
                 reward: &[0.0, 0.0],
                 cost: &[0.0, 1.0],

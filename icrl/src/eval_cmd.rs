@@ -338,10 +338,10 @@ fn write_csvs(report: &EvalReport, stem: &Path) -> Result<Vec<PathBuf>, EvalCmdE
     let episodes = PathBuf::from(format!("{}_episodes.csv", stem.display()));
     let mut f = std::fs::File::create(&episodes).map_err(io_err(&episodes))?;
     let mut text = header.clone();
-    text.push_str("k,return_mean,return_se,cost_mean,cost_se,violation_mean,violation_se,success_mean,success_se,n_tasks\n");
+    text.push_str("k,return_mean,return_se,cost_mean,cost_se,violation_mean,violation_se,success_mean,success_se,n_tasks,discovery_mean,discovery_se,discovery_n_tasks,revisit_mean,revisit_se,revisit_n_tasks,found_by_mean,found_by_se\n");
     for e in &report.summary.per_episode {
         text.push_str(&format!(
-            "{},{},{},{},{},{},{},{},{},{}\n",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
             e.k,
             e.ret.mean,
             e.ret.se,
@@ -351,7 +351,15 @@ fn write_csvs(report: &EvalReport, stem: &Path) -> Result<Vec<PathBuf>, EvalCmdE
             e.violation.se,
             e.success.mean,
             e.success.se,
-            e.ret.n
+            e.ret.n,
+            e.discovery.mean,
+            e.discovery.se,
+            e.discovery.n,
+            e.revisit.mean,
+            e.revisit.se,
+            e.revisit.n,
+            e.found_by.mean,
+            e.found_by.se,
         ));
     }
     f.write_all(text.as_bytes()).map_err(io_err(&episodes))?;
