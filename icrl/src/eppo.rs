@@ -1876,6 +1876,9 @@ impl EppoAgent {
                 &dir,
                 "eppo",
                 &manifest.env,
+                // The macro action is the checkpoint's own (read_manifest
+                // refuses Point and Car checkpoints that do not record it).
+                manifest.physics_steps_per_action,
                 &model_manifest(&cfg, &state.spec),
             )
             .map_err(|e| {
