@@ -253,6 +253,12 @@ pub struct AdSpec {
     pub dataset_config: String,
     /// The pretraining tasks behind the dataset (for the held-out check).
     pub pretrain_tasks: Option<PretrainTasks>,
+    /// Point and Car: the dataset's macro action (MuJoCo physics steps per
+    /// agent action); evaluation builds its environments with it. Absent for
+    /// SafeDarkRoom, and in Point and Car runs from before it was recorded,
+    /// which [`AdAgent::load`] refuses.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub physics_steps_per_action: Option<usize>,
 }
 
 impl AdSpec {
@@ -605,6 +611,7 @@ fn spec_for(data: &HistoryFile, dataset_path: &Path) -> AdSpec {
         dataset: dataset_path.display().to_string(),
         dataset_config: info.config.clone(),
         pretrain_tasks,
+        physics_steps_per_action: info.physics_steps_per_action,
     }
 }
 
@@ -1004,6 +1011,8 @@ pub struct CheckpointInfo {
     pub updates_planned: usize,
     pub pretrain_tasks: Option<PretrainTasks>,
     pub env: String,
+    /// Point and Car: physics steps per agent action of the training data.
+    pub physics_steps_per_action: Option<usize>,
 }
 
 impl AdAgent {
@@ -1019,6 +1028,25 @@ impl AdAgent {
             .map_err(|e| io_err(&dir.join("spec.json"), e))?;
         let state: TrainState = serde_json::from_str(&read("state.json")?)
             .map_err(|e| io_err(&dir.join("state.json"), e))?;
+        let physics = spec
+            .env
+            .parse::<safety_envs::EnvName>()
+            .ok()
+            .and_then(|env| env.physics_steps_per_action(None));
+        if physics.is_some() && spec.physics_steps_per_action.is_none() {
+            return Err(io_err(
+                &dir.join("spec.json"),
+                format!(
+                    "this {} run does not record its data's macro action, so it was trained on a dataset \
+                     made when an agent action was {} physics steps (before 2026-11-30); the environments \
+                     now take {} (5 Safety-Gymnasium steps x 10 physics steps): regenerate the dataset \
+                     (`icrl dataset`) and retrain",
+                    spec.env,
+                    safety_envs::OLD_PHYSICS_STEPS_PER_ACTION,
+                    safety_envs::PHYSICS_STEPS_PER_ACTION
+                ),
+            ));
+        }
         let mut vs = nn::VarStore::new(Device::cuda_if_available());
         let model = AdModel::new(&vs.root(), &spec, &cfg)?;
         vs.load(dir.join("model.safetensors"))?;
@@ -1029,6 +1057,7 @@ impl AdAgent {
             updates_planned: cfg.updates,
             pretrain_tasks: spec.pretrain_tasks.clone(),
             env: spec.env.clone(),
+            physics_steps_per_action: spec.physics_steps_per_action,
         };
         let cache = model.transformer.new_cache();
         Ok((

@@ -176,6 +176,17 @@ pub struct EppoConfig {
     pub checkpoint_every: u64,
     /// Checkpoints kept (0 keeps all).
     pub keep_checkpoints: usize,
+    /// Point and Car: MuJoCo physics steps per agent action (the macro
+    /// action; 5 Safety-Gymnasium steps x 10 physics steps = 50 when absent).
+    /// SafeDarkRoom has no physics: leave it out. Checkpoints record the
+    /// resolved value; resuming with another is refused.
+    #[serde(default = "default_physics_steps_per_action")]
+    pub physics_steps_per_action: Option<usize>,
+}
+
+/// Absent from a config: the environment's default macro action.
+fn default_physics_steps_per_action() -> Option<usize> {
+    None
 }
 
 /// A configuration that cannot run, a failing environment, model or checkpoint.
@@ -331,7 +342,9 @@ pub struct NetSpec {
     pub obs_dim: usize,
     /// Per-entry observation bounds used to map observations to [-1, 1]
     /// (entries with infinite bounds pass through unchanged).
+    #[serde(with = "crate::json_bounds::lower")]
     pub obs_low: Vec<f32>,
+    #[serde(with = "crate::json_bounds::upper")]
     pub obs_high: Vec<f32>,
     /// `Some(n)` for n discrete actions, `None` for a box.
     pub n_actions: Option<usize>,
@@ -1095,6 +1108,7 @@ impl Learner {
             env,
             &EnvOptions {
                 max_episode_steps: Some(cfg.max_episode_steps),
+                physics_steps_per_action: cfg.physics_steps_per_action,
             },
         )?;
         let spec = NetSpec::from_spaces(&probe.observation_space(), &probe.action_space())?;
@@ -1354,6 +1368,8 @@ impl Learner {
             self.updates,
             "eppo",
             self.env.as_str(),
+            self.env
+                .physics_steps_per_action(self.cfg.physics_steps_per_action),
             self.model_manifest(),
             self.cfg.keep_checkpoints,
             |dir| {
@@ -1391,7 +1407,13 @@ impl Learner {
     pub fn resume(cfg: EppoConfig, env: EnvName, dir: &Path) -> Result<Self, EppoError> {
         let manifest = read_manifest(dir)?;
         let mut learner = Learner::new(cfg, env)?;
-        manifest.check_compatible(dir, "eppo", env.as_str(), &learner.model_manifest())?;
+        manifest.check_compatible(
+            dir,
+            "eppo",
+            env.as_str(),
+            env.physics_steps_per_action(learner.cfg.physics_steps_per_action),
+            &learner.model_manifest(),
+        )?;
         let bad = |file: &str, e: String| {
             EppoError::Checkpoint(CheckpointError::Invalid {
                 path: dir.join(file),
@@ -1538,6 +1560,7 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
                 opts.env,
                 &EnvOptions {
                     max_episode_steps: Some(cfg.max_episode_steps),
+                    physics_steps_per_action: cfg.physics_steps_per_action,
                 },
             )
         })
@@ -1861,6 +1884,9 @@ impl EppoAgent {
                 &dir,
                 "eppo",
                 &manifest.env,
+                // The macro action is the checkpoint's own (read_manifest
+                // refuses Point and Car checkpoints that do not record it).
+                manifest.physics_steps_per_action,
                 &model_manifest(&cfg, &state.spec),
             )
             .map_err(|e| {
@@ -2175,6 +2201,7 @@ pub(crate) mod tests {
                     EnvName::DarkRoom,
                     &EnvOptions {
                         max_episode_steps: Some(cfg.max_episode_steps),
+                        physics_steps_per_action: cfg.physics_steps_per_action,
                     },
                 )
                 .unwrap()
