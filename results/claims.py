@@ -74,6 +74,41 @@ def per_episode_slopes(r, key):
     return mean_se(out)
 
 
+def spearman(xs, ys):
+    """Spearman's rank correlation (average ranks for ties)."""
+    def ranks(v):
+        order = sorted(range(len(v)), key=lambda i: v[i])
+        r = [0.0] * len(v)
+        i = 0
+        while i < len(order):
+            j = i
+            while j + 1 < len(order) and v[order[j + 1]] == v[order[i]]:
+                j += 1
+            for m in range(i, j + 1):
+                r[order[m]] = (i + j) / 2 + 1
+            i = j + 1
+        return r
+    rx, ry = ranks(xs), ranks(ys)
+    mx, my = sum(rx) / len(rx), sum(ry) / len(ry)
+    sxy = sum((a - mx) * (b - my) for a, b in zip(rx, ry))
+    sxx = sum((a - mx) ** 2 for a in rx)
+    syy = sum((b - my) ** 2 for b in ry)
+    return sxy / math.sqrt(sxx * syy) if sxx > 0 and syy > 0 else float("nan")
+
+
+def pooled_rate(r, found_before):
+    """P(goal at k | goal reached / not reached in episodes 1..k-1), pooled
+    over every (condition, task, k >= 2)."""
+    hits = n = 0
+    for per_task in r["result"]["reached_goal"]:
+        for eps in per_task:
+            for k in range(1, len(eps)):
+                if any(eps[:k]) == found_before:
+                    n += 1
+                    hits += eps[k]
+    return hits / n if n else float("nan")
+
+
 def fmt(ms):
     return f"{ms['mean']:.3f} ± {ms['se']:.3f}"
 
@@ -102,6 +137,15 @@ def main(folders):
         print(f"  last-window cost {t['last_cost']['mean']:.3f} vs mean budget {s['mean_budget']:.2f}: "
               f"{'PASS' if safe else 'FAIL'}; over-budget rate in episode K {fmt(last['violation'])}; "
               f"goal reached in episode K {fmt(last['success'])}")
+        if method == "Eppo" and protocol == "figure1" and k > 1:
+            # Issue 9's targets for the in-context learner.
+            rs, rse = per_episode_slopes(r, "returns")
+            within = 1 - last["violation"]["mean"]
+            rev = pooled_rate(r, True)
+            print(f"  issue 9: last-episode return {last['ret']['mean']:.3f} (>= 0.6: {'PASS' if last['ret']['mean'] >= 0.6 else 'FAIL'}); "
+                  f"return slope {rs:+.4f} ± {rse:.4f} (> 3 s.e.: {'PASS' if rs > 3 * rse else 'FAIL'}); "
+                  f"revisit {rev:.3f} (>= 0.9: {'PASS' if rev >= 0.9 else 'FAIL'}); discovery {pooled_rate(r, False):.3f}; "
+                  f"within budget at episode K {within:.3f} (>= 0.9: {'PASS' if within >= 0.9 else 'FAIL'})")
         slope = s.get("total_return_slope")
         if protocol == "sweep" and slope:
             within = abs(slope["mean"]) <= 2 * slope["se"]
@@ -112,6 +156,11 @@ def main(folders):
             else:
                 verdict = "baseline"
             print(f"  d total return / d CTG {fmt(slope)}; d max cost / d CTG {fmt(s['max_cost_slope'])}: {verdict}")
+            if method == "Eppo":
+                pts = [(c["condition"]["ctg"], c["total_return"]["mean"]) for c in s["per_condition"]]
+                rho = spearman([p[0] for p in pts], [p[1] for p in pts])
+                print(f"  issue 9: Spearman rho of total return on the budget {rho:.3f} over {len(pts)} budgets "
+                      f"(>= 0.8: {'PASS' if rho >= 0.8 else 'FAIL'})")
         if r.get("parameters_checksum"):
             a, b = r["parameters_checksum"]
             print(f"  parameters frozen: {'yes' if a == b else 'NO'} (checksum {a:#x})")

@@ -110,6 +110,7 @@ fn collection(cfg: EppoConfig, rounds: usize) -> (f64, f64) {
                 EnvName::DarkRoom,
                 &EnvOptions {
                     max_episode_steps: Some(cfg.max_episode_steps),
+                    physics_steps_per_action: cfg.physics_steps_per_action,
                 },
             )
             .expect("env")

@@ -277,6 +277,12 @@ pub struct AdSpec {
     pub dataset_config: String,
     /// The pretraining tasks behind the dataset (for the held-out check).
     pub pretrain_tasks: Option<PretrainTasks>,
+    /// Point and Car: the dataset's macro action (MuJoCo physics steps per
+    /// agent action); evaluation builds its environments with it. Absent for
+    /// SafeDarkRoom, and in Point and Car runs from before it was recorded,
+    /// which [`AdAgent::load`] refuses.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub physics_steps_per_action: Option<usize>,
 }
 
 impl AdSpec {
@@ -654,6 +660,7 @@ fn spec_for(data: &HistoryFile, dataset_path: &Path) -> AdSpec {
         dataset: dataset_path.display().to_string(),
         dataset_config: info.config.clone(),
         pretrain_tasks,
+        physics_steps_per_action: info.physics_steps_per_action,
     }
 }
 
@@ -695,6 +702,7 @@ fn save_checkpoint(
         state.update as u64,
         "ad",
         &spec.env,
+        spec.physics_steps_per_action,
         model_manifest(cfg, spec),
         cfg.keep_checkpoints,
         |dir| {
@@ -760,7 +768,13 @@ fn load_checkpoint_into(
     opt: &mut Adam,
 ) -> Result<TrainState, AdError> {
     let manifest = read_manifest(ckpt)?;
-    manifest.check_compatible(ckpt, "ad", &spec.env, &model_manifest(cfg, spec))?;
+    manifest.check_compatible(
+        ckpt,
+        "ad",
+        &spec.env,
+        spec.physics_steps_per_action,
+        &model_manifest(cfg, spec),
+    )?;
     let bad = |file: &str, e: String| {
         AdError::Checkpoint(CheckpointError::Invalid {
             path: ckpt.join(file),
@@ -1271,6 +1285,8 @@ pub struct CheckpointInfo {
     pub updates_planned: usize,
     pub pretrain_tasks: Option<PretrainTasks>,
     pub env: String,
+    /// Point and Car: physics steps per agent action of the training data.
+    pub physics_steps_per_action: Option<usize>,
 }
 
 impl AdAgent {
@@ -1324,6 +1340,25 @@ impl AdAgent {
         let p = ckpt.join("state.json");
         let state: TrainState =
             serde_json::from_str(&read(p.clone())?).map_err(|e| bad(p, e.to_string()))?;
+        let physics = spec
+            .env
+            .parse::<safety_envs::EnvName>()
+            .ok()
+            .and_then(|env| env.physics_steps_per_action(None));
+        if physics.is_some() && spec.physics_steps_per_action.is_none() {
+            return Err(bad(
+                run_dir.join("spec.json"),
+                format!(
+                    "this {} run does not record its data's macro action, so it was trained on a dataset \
+                     made when an agent action was {} physics steps (before 2026-11-30); the environments \
+                     now take {} (5 Safety-Gymnasium steps x 10 physics steps): regenerate the dataset \
+                     (`icrl dataset`) and retrain",
+                    spec.env,
+                    safety_envs::OLD_PHYSICS_STEPS_PER_ACTION,
+                    safety_envs::PHYSICS_STEPS_PER_ACTION
+                ),
+            ));
+        }
         let mut vs = nn::VarStore::new(Device::cuda_if_available());
         let model = AdModel::new(&vs.root(), &spec, &cfg)?;
         let p = ckpt.join("model.safetensors");
@@ -1341,6 +1376,7 @@ impl AdAgent {
             updates_planned: cfg.updates,
             pretrain_tasks: spec.pretrain_tasks.clone(),
             env: spec.env.clone(),
+            physics_steps_per_action: spec.physics_steps_per_action,
         };
         let cache = model.transformer.new_cache();
         Ok((
@@ -1593,6 +1629,7 @@ mod tests {
         for t in 0..100 {
             let input = StepInput {
                 obs: &[4.0, 4.0, 4.0, 5.0],
+                arrived_obs: &[4.0, 4.0, 4.0, 5.0],
                 prev_action: &[0.0; 10],
                 reward: &[0.0, 0.0],
                 cost: &[0.0, 1.0],

@@ -20,6 +20,11 @@ pub enum Conditioning {
 pub struct StepInput<'a> {
     /// Current observations, (B, obs_dim).
     pub obs: &'a [f32],
+    /// The observation `prev_action` led to, (B, obs_dim): where `reward` and
+    /// `cost` were received. It equals `obs` inside an episode; at an episode
+    /// start it is the previous episode's final observation (at the goal, say),
+    /// which the auto-reset replaced in `obs`; zeros at the trajectory's first step.
+    pub arrived_obs: &'a [f32],
     /// The action taken just before, (B, action_dim); a one-hot row for discrete
     /// actions; zeros at the first step of the trajectory.
     pub prev_action: &'a [f32],

@@ -8,9 +8,13 @@
 //! - `checkpoints/step_N/`: one folder per checkpoint, written atomically
 //!   (filled under `checkpoints/.tmp_step_N/`, then renamed), holding the
 //!   learner's files and a `manifest.json` naming the method, environment,
-//!   model shape, format version, and the size and SHA-256 of every file, so
-//!   a truncated, altered or foreign checkpoint is refused with an error that
-//!   names the file.
+//!   the environment's macro action (Point and Car: physics steps per agent
+//!   action), model shape, format version, and the size and SHA-256 of every
+//!   file, so a truncated, altered or foreign checkpoint is refused with an
+//!   error that names the file. A Point or Car checkpoint that does not
+//!   record its macro action was written when an agent action was 5 physics
+//!   steps (before 2026-11-30) and is refused: its policy acts on a time
+//!   scale 10x shorter than today's environments.
 //!
 //! Run folders are created exclusively: two runs started in the same second
 //! with the same env, method and seed get `..._{time}` and `..._{time}_2`,
@@ -21,6 +25,7 @@ use std::fs;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use safety_envs::{EnvName, OLD_PHYSICS_STEPS_PER_ACTION, PHYSICS_STEPS_PER_ACTION};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
 use thiserror::Error;
@@ -72,6 +77,13 @@ pub struct Manifest {
     pub method: String,
     /// Environment, e.g. `darkroom`.
     pub env: String,
+    /// Point and Car: MuJoCo physics steps per agent action the policy was
+    /// trained with (the macro action; default 5 Safety-Gymnasium steps x 10
+    /// physics steps = 50). Absent for SafeDarkRoom, and in Point and Car
+    /// checkpoints written before it was recorded, which [`read_manifest`]
+    /// refuses.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub physics_steps_per_action: Option<usize>,
     /// Model shape and input/output sizes (learner-defined JSON object).
     pub model: serde_json::Value,
     /// Updates done when the checkpoint was written.
@@ -98,14 +110,31 @@ pub fn sha256_file(path: &Path) -> Result<String, CheckpointError> {
 }
 
 impl Manifest {
-    /// Refuses a checkpoint of another method, environment or model shape.
+    /// Refuses a checkpoint of another method, environment, macro action
+    /// (`physics_steps_per_action`, resolved: see
+    /// [`EnvName::physics_steps_per_action`]) or model shape.
     pub fn check_compatible(
         &self,
         dir: &Path,
         method: &str,
         env: &str,
+        physics_steps_per_action: Option<usize>,
         model: &serde_json::Value,
     ) -> Result<(), CheckpointError> {
+        if self.physics_steps_per_action != physics_steps_per_action {
+            let show = |v: Option<usize>| v.map_or("none".to_string(), |n| n.to_string());
+            return Err(CheckpointError::Mismatch {
+                path: dir.join(MANIFEST),
+                what: "physics steps per agent action".into(),
+                found: show(self.physics_steps_per_action),
+                expected: show(physics_steps_per_action),
+                fix: format!(
+                    "a policy trained with one macro action does not transfer to another; resume with \
+                     physics_steps_per_action = {} (or start a new run)",
+                    show(self.physics_steps_per_action)
+                ),
+            });
+        }
         let fix = "resume with the same --env, method and model settings as the original run, or start a new run";
         // Name only the model fields that differ (`model.transformer.n_layers`).
         let mut found_model = Vec::new();
@@ -185,6 +214,24 @@ pub fn read_manifest(dir: &Path) -> Result<Manifest, CheckpointError> {
                 manifest.format_version
             ),
             fix: "use the icrl version that wrote it, or start a new run".into(),
+        });
+    }
+    let physics = manifest
+        .env
+        .parse::<EnvName>()
+        .ok()
+        .and_then(|env| env.physics_steps_per_action(None));
+    if physics.is_some() && manifest.physics_steps_per_action.is_none() {
+        return Err(CheckpointError::Invalid {
+            path,
+            problem: format!(
+                "this {} checkpoint does not record its macro action, so it was written when an agent \
+                 action was {OLD_PHYSICS_STEPS_PER_ACTION} physics steps (before 2026-11-30); the \
+                 environments now take {PHYSICS_STEPS_PER_ACTION} (5 Safety-Gymnasium steps x 10 \
+                 physics steps), a 10x longer action its policy was never trained on",
+                manifest.env
+            ),
+            fix: "retrain it with the current defaults (`icrl pretrain`)".into(),
         });
     }
     for (name, &size) in &manifest.files {
@@ -389,11 +436,13 @@ impl RunDir {
     /// Writes `checkpoints/step_{updates}` atomically: `write` fills a
     /// temporary folder, the manifest (with every file's size) is added, and
     /// the folder is renamed into place. Keeps the newest `keep` checkpoints.
+    #[allow(clippy::too_many_arguments)]
     pub fn write_checkpoint(
         &self,
         updates: u64,
         method: &str,
         env: &str,
+        physics_steps_per_action: Option<usize>,
         model: serde_json::Value,
         keep: usize,
         write: impl FnOnce(&Path) -> Result<(), CheckpointError>,
@@ -419,6 +468,7 @@ impl RunDir {
             format_version: FORMAT_VERSION,
             method: method.into(),
             env: env.into(),
+            physics_steps_per_action,
             model,
             updates,
             files,
@@ -551,7 +601,7 @@ mod tests {
         let run = RunDir::create(&root, "darkroom", "test", 3).unwrap();
         let model = serde_json::json!({"d_model": 8});
         for step in [5, 10, 15] {
-            run.write_checkpoint(step, "test", "darkroom", model.clone(), 2, |dir| {
+            run.write_checkpoint(step, "test", "darkroom", None, model.clone(), 2, |dir| {
                 fs::write(dir.join("w.bin"), vec![1u8; 100]).map_err(io(dir))
             })
             .unwrap();
@@ -560,10 +610,10 @@ mod tests {
         assert!(latest.ends_with("step_15"));
         assert!(!run.path.join("checkpoints/step_5").exists(), "pruned to 2");
         let m = read_manifest(&latest).unwrap();
-        m.check_compatible(&latest, "test", "darkroom", &model)
+        m.check_compatible(&latest, "test", "darkroom", None, &model)
             .unwrap();
         let err = m
-            .check_compatible(&latest, "test", "point", &model)
+            .check_compatible(&latest, "test", "point", None, &model)
             .unwrap_err()
             .to_string();
         assert!(
@@ -572,7 +622,7 @@ mod tests {
         );
         let other = serde_json::json!({"d_model": 16});
         let err = m
-            .check_compatible(&latest, "test", "darkroom", &other)
+            .check_compatible(&latest, "test", "darkroom", None, &other)
             .unwrap_err()
             .to_string();
         assert!(
@@ -590,13 +640,63 @@ mod tests {
     }
 
     #[test]
+    fn macro_action_is_recorded_checked_and_old_checkpoints_refused() {
+        let root = std::env::temp_dir().join(format!("icrl-ckpt-macro-{}", std::process::id()));
+        let run = RunDir::create(&root, "point", "test", 1).unwrap();
+        let model = serde_json::json!({"d_model": 8});
+        let dir = run
+            .write_checkpoint(1, "test", "point", Some(50), model.clone(), 0, |dir| {
+                fs::write(dir.join("w.bin"), [0u8; 4]).map_err(io(dir))
+            })
+            .unwrap();
+        let m = read_manifest(&dir).unwrap();
+        assert_eq!(m.physics_steps_per_action, Some(50));
+        m.check_compatible(&dir, "test", "point", Some(50), &model)
+            .unwrap();
+        let err = m
+            .check_compatible(&dir, "test", "point", Some(5), &model)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("physics steps per agent action") && err.contains("\"50\""),
+            "{err}"
+        );
+        // A manifest from before the macro action was recorded: the field is
+        // absent. Point and Car refuse it, saying why; DarkRoom has no physics.
+        let path = dir.join(MANIFEST);
+        let mut json: serde_json::Value =
+            serde_json::from_str(&fs::read_to_string(&path).unwrap()).unwrap();
+        json.as_object_mut()
+            .unwrap()
+            .remove("physics_steps_per_action");
+        fs::write(&path, json.to_string()).unwrap();
+        let err = read_manifest(&dir).unwrap_err().to_string();
+        assert!(
+            err.contains("does not record its macro action")
+                && err.contains("5 physics steps")
+                && err.contains("retrain"),
+            "{err}"
+        );
+        json["env"] = "darkroom".into();
+        fs::write(&path, json.to_string()).unwrap();
+        assert_eq!(read_manifest(&dir).unwrap().physics_steps_per_action, None);
+        fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
     fn altered_bytes_of_the_same_size_are_caught_by_the_checksum() {
         let root = std::env::temp_dir().join(format!("icrl-ckpt-sha-{}", std::process::id()));
         let run = RunDir::create(&root, "darkroom", "test", 3).unwrap();
         let dir = run
-            .write_checkpoint(1, "test", "darkroom", serde_json::json!({}), 0, |dir| {
-                fs::write(dir.join("model.safetensors"), vec![7u8; 256]).map_err(io(dir))
-            })
+            .write_checkpoint(
+                1,
+                "test",
+                "darkroom",
+                None,
+                serde_json::json!({}),
+                0,
+                |dir| fs::write(dir.join("model.safetensors"), vec![7u8; 256]).map_err(io(dir)),
+            )
             .unwrap();
         let m = read_manifest(&dir).unwrap();
         assert_eq!(m.sha256.len(), 1);

@@ -71,6 +71,11 @@ pub struct DatasetConfig {
     pub source: Source,
     /// Time limit override (agent steps).
     pub max_episode_steps: Option<usize>,
+    /// Point and Car: MuJoCo physics steps per agent action (the macro
+    /// action); `None` takes the default, 5 Safety-Gymnasium steps x 10
+    /// physics steps = 50. The file records the resolved value.
+    #[serde(default)]
+    pub physics_steps_per_action: Option<usize>,
     /// PPO-Lagrangian settings (`total_steps` is replaced by `steps`).
     pub ppo: PpoLagConfig,
     /// AD-eps: fraction of the history after which the noise is 0.
@@ -93,6 +98,7 @@ impl DatasetConfig {
             threads: 1,
             source: Source::PpoLagrangian,
             max_episode_steps: None,
+            physics_steps_per_action: None,
             ppo,
             noise_end_fraction: 0.8,
         }
@@ -158,9 +164,11 @@ pub fn generate(
     let env_name = cfg.validate()?;
     let options = EnvOptions {
         max_episode_steps: cfg.max_episode_steps,
+        physics_steps_per_action: cfg.physics_steps_per_action,
     };
     let probe = make_env(env_name, &options)?;
     let obs_dim = probe.observation_space().flat_dim();
+    let physics_steps_per_action = probe.physics_steps_per_action();
     let (action_dim, action_n) = match probe.action_space() {
         Space::Discrete { n } => (1, Some(n)),
         Space::Box { low, .. } => (low.len(), None),
@@ -242,6 +250,7 @@ pub fn generate(
                 action_dim,
                 action_n,
                 grid_size: spawn.grid_size,
+                physics_steps_per_action,
             },
             histories,
         },
@@ -261,6 +270,8 @@ pub struct DatasetCommand {
     pub seed: u64,
     pub threads: usize,
     pub source: Source,
+    /// Point and Car: physics steps per agent action; `None`: the default (50).
+    pub physics_steps_per_action: Option<usize>,
 }
 
 /// What the `dataset` command made.
@@ -276,6 +287,8 @@ pub struct DatasetReport {
     /// episodes of every history: how much the histories improve.
     pub early: (f64, f64),
     pub late: (f64, f64),
+    /// Point and Car: the macro action recorded in the file.
+    pub physics_steps_per_action: Option<usize>,
 }
 
 /// Runs the `dataset` command: generates with a progress bar, writes the HDF5
@@ -286,6 +299,7 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
     cfg.steps = cmd.steps;
     cfg.threads = cmd.threads;
     cfg.source = cmd.source;
+    cfg.physics_steps_per_action = cmd.physics_steps_per_action;
     if let Some(c) = &cmd.cost_limits {
         cfg.cost_limits = c.clone();
     }
@@ -365,6 +379,7 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
         bytes,
         early: (early.0 / ne, early.1 / ne),
         late: (late.0 / nl, late.1 / nl),
+        physics_steps_per_action: data.file.info.physics_steps_per_action,
     })
 }
 

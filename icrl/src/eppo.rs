@@ -12,6 +12,20 @@
 //! - Lp = -Q(h_t, a_hat) + lambda v_e Qc(h_t, a_hat), v_e = 1 when episode e's
 //!   cost exceeded the trajectory's budget delta.
 //!
+//! Deviations from Algorithm 1, each for a measured reason (results/eppo_ladder):
+//! - Each token also carries the observation the previous action arrived at,
+//!   so the goal, where the auto-reset replaces the final observation, enters
+//!   the context with its reward (`push_token`).
+//! - The reward critic bootstraps across episode boundaries (the meta-RL
+//!   objective is the sum of the K returns); the cost critic never does, since
+//!   the budget binds each episode alone (Eq. 6): a violation charges only its
+//!   own episode.
+//! - Q and the tokens see rewards x `reward_scale`; lambda is in reward units
+//!   (the penalty is lambda x reward_scale x Qc), so lambda = 1 prices one unit
+//!   of cost like one goal whatever the scale.
+//! - Exploration is AMAGO's bilevel epsilon-greedy: annealed over training,
+//!   decaying inside each trajectory, scaled per trajectory by a uniform draw.
+//!
 //! The multiplier follows Eq. (7): lambda <- clip(lambda + eta * mean over the
 //! sampled trajectories of max_k (C_k - delta), 0, lambda_max).
 //!
@@ -19,7 +33,9 @@
 //! `env_steps`): `episodic_return`, `episodic_cost` (means over the episodes
 //! collected in the round), `first_episode_return`, `last_episode_return`,
 //! `first_episode_cost`, `last_episode_cost` (per trajectory, averaged: the
-//! in-context signal), `lambda`, `losses/value_loss`, `losses/cost_value_loss`,
+//! in-context signal), `discovery_rate` and `revisit_rate` (P(goal at episode
+//! k > 1 | not found / found earlier in the trajectory)), `found_goal`
+//! (fraction of trajectories that found it), `lambda`, `losses/value_loss`, `losses/cost_value_loss`,
 //! `losses/policy_loss`, `losses/entropy`, `losses/grad_norm`, `charts/epsilon`,
 //! `charts/updates_per_s`, `charts/env_steps_per_s`. Losses are averaged over
 //! the round's updates and are `null` in rounds without an update (before
@@ -118,22 +134,59 @@ pub struct EppoConfig {
     pub lambda_max: f64,
     /// Initial multiplier.
     pub lambda_init: f64,
+    /// Updates before Eq. (7) starts moving lambda (it stays at `lambda_init`):
+    /// the agent first learns to search and return to the goal, then the
+    /// constraint prices its costs (a multiplier at its cap from the start
+    /// stops search before it is learned; results/eppo_ladder).
+    #[serde(default)]
+    pub lambda_warmup_updates: u64,
     /// Weight of the critic losses against the actor loss.
     pub critic_weight: f64,
     /// Entropy bonus weight in the actor loss.
     pub entropy_coef: f64,
     /// Rewards are multiplied by this in the TD targets and the tokens.
     pub reward_scale: f64,
-    /// Epsilon-greedy exploration at the start (discrete actions; AMAGO lever).
+    /// Epsilon-greedy exploration (discrete actions) at a trajectory's first
+    /// step, at the start of training. Epsilon is bilevel, after AMAGO: it
+    /// anneals over training and, inside each trajectory, moves linearly from
+    /// its first-step value to its last-step value (`eps_last_*`).
     pub eps_start: f64,
-    /// Epsilon-greedy exploration after the decay.
+    /// Epsilon at a trajectory's first step once annealed.
     pub eps_end: f64,
-    /// Environment steps over which epsilon decays linearly.
+    /// Environment steps over which both ends anneal linearly.
     pub eps_decay_steps: u64,
+    /// Epsilon at a trajectory's last step, at the start of training
+    /// (absent: equal to `eps_start`, no decay inside a trajectory).
+    #[serde(default)]
+    pub eps_last_start: Option<f64>,
+    /// Epsilon at a trajectory's last step once annealed (absent: `eps_end`).
+    #[serde(default)]
+    pub eps_last_end: Option<f64>,
+    /// Scale each trajectory's epsilon by its own uniform draw in [0, 1]
+    /// (AMAGO's `randomize_eps`): the replay then holds the whole range from
+    /// near-on-policy to noisy trajectories.
+    #[serde(default)]
+    pub eps_random_scale: bool,
+    /// Pretraining task pool: 0 draws a fresh task for every trajectory (the
+    /// paper); n > 0 cycles over the first n task seeds (1: one fixed task,
+    /// the first rung of the debugging ladder).
+    #[serde(default)]
+    pub task_pool: u64,
     /// Updates between checkpoints (one is always written at the end).
     pub checkpoint_every: u64,
     /// Checkpoints kept (0 keeps all).
     pub keep_checkpoints: usize,
+    /// Point and Car: MuJoCo physics steps per agent action (the macro
+    /// action; 5 Safety-Gymnasium steps x 10 physics steps = 50 when absent).
+    /// SafeDarkRoom has no physics: leave it out. Checkpoints record the
+    /// resolved value; resuming with another is refused.
+    #[serde(default = "default_physics_steps_per_action")]
+    pub physics_steps_per_action: Option<usize>,
+}
+
+/// Absent from a config: the environment's default macro action.
+fn default_physics_steps_per_action() -> Option<usize> {
+    None
 }
 
 /// A configuration that cannot run, a failing environment, model or checkpoint.
@@ -186,6 +239,10 @@ impl EppoConfig {
             ("total_updates", i128::from(self.total_updates)),
             ("updates_per_round", i128::from(self.updates_per_round)),
             ("checkpoint_every", i128::from(self.checkpoint_every)),
+            (
+                "physics_steps_per_action",
+                self.physics_steps_per_action.map_or(1, |n| n as i128),
+            ),
         ])
         .or_else(bad)?;
         if !(0..=1024).contains(&self.torch_threads) {
@@ -244,6 +301,18 @@ impl EppoConfig {
                 self.lambda_init, self.lambda_max
             ));
         }
+        for (name, v) in [
+            ("eps_start", Some(self.eps_start)),
+            ("eps_end", Some(self.eps_end)),
+            ("eps_last_start", self.eps_last_start),
+            ("eps_last_end", self.eps_last_end),
+        ] {
+            if let Some(v) = v
+                && !(0.0..=1.0).contains(&v)
+            {
+                return bad(format!("{name} = {v} must lie in [0, 1]"));
+            }
+        }
         if self.replay_capacity < longest {
             return bad(format!(
                 "replay_capacity = {} cannot hold one trajectory of {longest} steps",
@@ -252,6 +321,40 @@ impl EppoConfig {
         }
         parse_device(&self.device)?;
         Ok(())
+    }
+}
+
+/// The epsilon-greedy schedule inside one trajectory, at one point of training.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Exploration {
+    /// Epsilon at the trajectory's first step.
+    pub first: f64,
+    /// Epsilon at its last possible step (K x t_max).
+    pub last: f64,
+}
+
+impl Exploration {
+    /// Epsilon at step `t` of a trajectory of at most `horizon` steps, scaled
+    /// by the trajectory's own draw `scale` (1 without `eps_random_scale`).
+    pub fn at(&self, t: usize, horizon: usize, scale: f64) -> f64 {
+        let progress = (t as f64 / horizon.max(1) as f64).min(1.0);
+        scale * (self.first + (self.last - self.first) * progress)
+    }
+}
+
+impl EppoConfig {
+    /// Both ends of the bilevel schedule after `env_steps` of training: each
+    /// anneals linearly from its start to its end value over `eps_decay_steps`.
+    pub fn exploration(&self, env_steps: u64) -> Exploration {
+        let frac = (env_steps as f64 / self.eps_decay_steps.max(1) as f64).min(1.0);
+        let anneal = |from: f64, to: f64| from + (to - from) * frac;
+        Exploration {
+            first: anneal(self.eps_start, self.eps_end),
+            last: anneal(
+                self.eps_last_start.unwrap_or(self.eps_start),
+                self.eps_last_end.unwrap_or(self.eps_end),
+            ),
+        }
     }
 }
 
@@ -339,7 +442,9 @@ pub struct NetSpec {
     pub obs_dim: usize,
     /// Per-entry observation bounds used to map observations to [-1, 1]
     /// (entries with infinite bounds pass through unchanged).
+    #[serde(with = "crate::json_bounds::lower")]
     pub obs_low: Vec<f32>,
+    #[serde(with = "crate::json_bounds::upper")]
     pub obs_high: Vec<f32>,
     /// `Some(n)` for n discrete actions, `None` for a box.
     pub n_actions: Option<usize>,
@@ -400,9 +505,10 @@ impl NetSpec {
         self.n_actions.unwrap_or(self.act_low.len())
     }
 
-    /// Width of one time-step token: obs, previous action, reward, cost, CTG, start flag.
+    /// Width of one time-step token: obs, arrived obs, previous action,
+    /// reward, cost, CTG, start flag.
     pub fn token_dim(&self) -> usize {
-        self.obs_dim + self.act_flat() + 4
+        2 * self.obs_dim + self.act_flat() + 4
     }
 
     /// Observation mapped to [-1, 1] where the bounds are finite.
@@ -572,6 +678,9 @@ pub struct Trajectory {
     pub budget: f32,
     /// (T, obs_dim) observations s_t.
     pub obs: Vec<f32>,
+    /// (T, obs_dim) the observation a_t led to: s_{t+1}, or the episode's
+    /// final observation where a_t ended it (the next s_t is then a new start).
+    pub next_obs: Vec<f32>,
     /// (T, act_flat) actions a_t as the network sees them (one-hot, or in [-1, 1]).
     pub actions: Vec<f32>,
     /// Discrete action indices (empty for continuous).
@@ -589,9 +698,10 @@ pub struct Trajectory {
     pub truncated: Vec<bool>,
     /// (T,) index of the episode the step belongs to.
     pub episode: Vec<u32>,
-    /// Per episode: return and cost.
+    /// Per episode: return, cost, and whether it ended at the goal.
     pub episode_returns: Vec<f32>,
     pub episode_costs: Vec<f32>,
+    pub episode_success: Vec<bool>,
 }
 
 impl Trajectory {
@@ -666,13 +776,20 @@ impl Replay {
 // Tokens: the same construction for collection, training and evaluation
 // ---------------------------------------------------------------------------
 
-/// Writes one token: obs (normalised), a_{t-1}, r_t (scaled), c_t, CTG_t / ctg_max, start flag.
+/// Writes one token: obs s_t and the observation a_{t-1} arrived at (both
+/// normalised), a_{t-1}, r_t (scaled), c_t, CTG_t / ctg_max, start flag.
+///
+/// The arrived observation is what puts the goal in context: at an episode's
+/// end the auto-reset replaces s_t by the next episode's start, so without it
+/// the token carrying reward 1 would never say where the goal was
+/// (Algorithm 1 stores s_{t+1}; AMAGO keeps the agent on the goal one step).
 #[allow(clippy::too_many_arguments)]
 fn push_token(
     spec: &NetSpec,
     cfg: &EppoConfig,
     out: &mut Vec<f32>,
     obs: &[f32],
+    arrived_obs: &[f32],
     prev_action: &[f32],
     reward: f32,
     cost: f32,
@@ -680,6 +797,7 @@ fn push_token(
     start: bool,
 ) {
     spec.normalise_obs(obs, out);
+    spec.normalise_obs(arrived_obs, out);
     out.extend_from_slice(prev_action);
     out.push(reward * cfg.reward_scale as f32);
     out.push(cost);
@@ -702,8 +820,12 @@ struct Batch {
     valid: Tensor,
     /// (B, L) 1 where a TD target exists for the step: the critic losses.
     td_valid: Tensor,
-    /// (B, L) 1 where the TD target bootstraps from position t + 1.
+    /// (B, L) 1 where the reward target bootstraps from position t + 1.
     bootstrap: Tensor,
+    /// (B, L) 1 where the cost target bootstraps from position t + 1: never
+    /// past an episode's end, since the budget binds each episode on its own
+    /// (Eq. 6, 7): a violation charges only its own episode.
+    cost_bootstrap: Tensor,
     /// (B,) max_k (C_k - delta) of each sampled trajectory (Eq. 7).
     max_violation: Vec<f32>,
 }
@@ -741,6 +863,7 @@ fn make_batch(
     let mut valid = vec![0f32; b * l];
     let mut td_valid = vec![0f32; b * l];
     let mut boot = vec![0f32; b * l];
+    let mut cost_boot = vec![0f32; b * l];
     let zeros_a = vec![0f32; a];
     let zeros_o = vec![0f32; spec.obs_dim];
     for (j, (t, &(s, len))) in trajs.iter().zip(&windows).enumerate() {
@@ -754,6 +877,7 @@ fn make_batch(
                     cfg,
                     &mut tokens,
                     &zeros_o,
+                    &zeros_o,
                     &zeros_a,
                     0.0,
                     0.0,
@@ -766,10 +890,12 @@ fn make_batch(
             }
             let step = s + i;
             let obs = &t.obs[step * spec.obs_dim..(step + 1) * spec.obs_dim];
-            let (prev, r, c) = if step == 0 {
-                (&zeros_a[..], 0.0, 0.0)
+            let od = spec.obs_dim;
+            let (arrived, prev, r, c) = if step == 0 {
+                (&zeros_o[..], &zeros_a[..], 0.0, 0.0)
             } else {
                 (
+                    &t.next_obs[(step - 1) * od..step * od],
                     &t.actions[(step - 1) * a..step * a],
                     t.rewards[step - 1],
                     t.costs[step - 1],
@@ -780,6 +906,7 @@ fn make_batch(
                 cfg,
                 &mut tokens,
                 obs,
+                arrived,
                 prev,
                 r,
                 c,
@@ -821,6 +948,12 @@ fn make_batch(
             };
             td_valid[k] = if has_target { 1.0 } else { 0.0 };
             boot[k] = if bootstraps { 1.0 } else { 0.0 };
+            let episode_ends = t.terminated[step] || t.truncated[step];
+            cost_boot[k] = if bootstraps && !episode_ends {
+                1.0
+            } else {
+                0.0
+            };
         }
     }
     let (bi, li) = (b as i64, l as i64);
@@ -842,6 +975,7 @@ fn make_batch(
         valid: f(&valid),
         td_valid: f(&td_valid),
         bootstrap: f(&boot),
+        cost_bootstrap: f(&cost_boot),
         max_violation: trajs.iter().map(|t| t.max_violation()).collect(),
     }
 }
@@ -910,10 +1044,11 @@ fn losses(
             }; // (B, L) each
         Ok((next_step(&v), next_step(&vc)))
     })?;
-    // y = r + gamma * [bootstraps] * V'(t + 1); the bootstrap mask carries the
-    // terminated / truncated / trajectory-end decision made in `make_batch`.
+    // y = r + gamma * [bootstraps] * V'(t + 1); the bootstrap masks carry the
+    // terminated / truncated / trajectory-end decision made in `make_batch`;
+    // the cost's also stops at every episode end (per-episode constraint).
     let y = &batch.rewards + &batch.bootstrap * &v_next * cfg.gamma; // (B, L)
-    let yc = &batch.costs + &batch.bootstrap * &vc_next * cfg.gamma; // (B, L)
+    let yc = &batch.costs + &batch.cost_bootstrap * &vc_next * cfg.gamma; // (B, L)
     let td_mask = batch.td_valid.unsqueeze(-1); // (B, L, 1)
     let (q_taken, qc_taken, policy_loss, entropy) = match net.spec.n_actions {
         Some(_) => {
@@ -932,7 +1067,8 @@ fn losses(
             let pi = logp.exp();
             let q = q_all.detach().amin(2, false); // (B, L, A)
             let qc = qc_all.detach().mean_dim(2, false, Kind::Float); // (B, L, A)
-            let per_action = q.neg() + qc * batch.violated.unsqueeze(-1) * lambda; // (B, L, A)
+            let penalty = lambda * cfg.reward_scale;
+            let per_action = q.neg() + qc * batch.violated.unsqueeze(-1) * penalty; // (B, L, A)
             let entropy = (&pi * &logp).sum_dim_intlist(-1, false, Kind::Float).neg(); // (B, L)
             let objective = (&pi * per_action).sum_dim_intlist(-1, false, Kind::Float)
                 - &entropy * cfg.entropy_coef;
@@ -958,7 +1094,8 @@ fn losses(
             let qc =
                 net.critic_sa(&net.cost_critic, &hd, &a_hat, true)
                     .mean_dim(-1, false, Kind::Float); // (B, L)
-            let objective = q.neg() + qc * &batch.violated * lambda + &log_prob * cfg.entropy_coef;
+            let penalty = lambda * cfg.reward_scale;
+            let objective = q.neg() + qc * &batch.violated * penalty + &log_prob * cfg.entropy_coef;
             (
                 q_taken,
                 qc_taken,
@@ -1036,6 +1173,44 @@ pub struct RoundStats {
     pub last_return: f64,
     pub first_cost: f64,
     pub last_cost: f64,
+    /// The in-context search signals, pooled over the round's episodes after
+    /// the first: P(goal | not found earlier in the trajectory) and
+    /// P(goal | found earlier), and the fraction of trajectories that found it.
+    pub discovery_rate: f64,
+    pub revisit_rate: f64,
+    pub found: f64,
+}
+
+/// (discovery rate, revisit rate, fraction found at least once) over
+/// trajectories given as per-episode successes; a rate with no episode to
+/// count is NaN.
+pub fn search_rates<'a>(successes: impl Iterator<Item = &'a [bool]>) -> (f64, f64, f64) {
+    let (mut disc, mut disc_n, mut rev, mut rev_n, mut found, mut n) = (0, 0, 0, 0, 0, 0);
+    for episodes in successes {
+        n += 1;
+        let mut seen = false;
+        for (k, &hit) in episodes.iter().enumerate() {
+            if k > 0 {
+                let (hits, count) = if seen {
+                    (&mut rev, &mut rev_n)
+                } else {
+                    (&mut disc, &mut disc_n)
+                };
+                *hits += usize::from(hit);
+                *count += 1;
+            }
+            seen |= hit;
+        }
+        found += usize::from(seen);
+    }
+    let rate = |a: usize, b: usize| {
+        if b == 0 {
+            f64::NAN
+        } else {
+            a as f64 / b as f64
+        }
+    };
+    (rate(disc, disc_n), rate(rev, rev_n), rate(found, n))
 }
 
 fn mean(xs: impl Iterator<Item = f64>) -> f64 {
@@ -1055,6 +1230,7 @@ impl Learner {
             env,
             &EnvOptions {
                 max_episode_steps: Some(cfg.max_episode_steps),
+                physics_steps_per_action: cfg.physics_steps_per_action,
             },
         )?;
         let spec = NetSpec::from_spaces(&probe.observation_space(), &probe.action_space())?;
@@ -1097,10 +1273,9 @@ impl Learner {
         })
     }
 
-    /// Current epsilon of epsilon-greedy exploration (discrete actions).
+    /// Current epsilon of epsilon-greedy exploration at a trajectory's first step.
     pub fn epsilon(&self) -> f64 {
-        let frac = (self.env_steps as f64 / self.cfg.eps_decay_steps.max(1) as f64).min(1.0);
-        self.cfg.eps_start + (self.cfg.eps_end - self.cfg.eps_start) * frac
+        self.cfg.exploration(self.env_steps).first
     }
 
     /// Collects `cfg.n_envs` trajectories at once: each in a fresh centre-oriented
@@ -1109,17 +1284,26 @@ impl Learner {
         let n = venv.len();
         let spawn = spawn_config(self.env);
         let (mut budgets, mut ks, mut seeds) = (vec![0f32; n], vec![0usize; n], vec![0u64; n]);
+        let mut eps_scale = vec![1f64; n];
         for i in 0..n {
-            let seed = pretrain_task_seed(self.cfg.seed, self.tasks_drawn);
+            let index = match self.cfg.task_pool {
+                0 => self.tasks_drawn,
+                pool => self.tasks_drawn % pool,
+            };
+            let seed = pretrain_task_seed(self.cfg.seed, index);
             self.tasks_drawn += 1;
             let task = sample_task(&spawn, Orientation::Centre, seed)?;
             venv.set_task(i, &task)?;
             budgets[i] = self.rng.gen_range(self.cfg.ctg_min..=self.cfg.ctg_max);
             ks[i] = self.rng.gen_range(self.cfg.k_min..=self.cfg.k_max);
             seeds[i] = self.rng.r#gen();
+            if self.cfg.eps_random_scale {
+                eps_scale[i] = self.rng.r#gen();
+            }
         }
         venv.reset(&seeds)?;
-        let eps = self.epsilon();
+        let exploration = self.cfg.exploration(self.env_steps);
+        let horizons: Vec<usize> = ks.iter().map(|k| k * self.cfg.max_episode_steps).collect();
         let mut acting = Acting::new(&self.net, &self.spec, &self.cfg, &budgets);
         let mut trajs: Vec<Trajectory> = budgets
             .iter()
@@ -1131,6 +1315,7 @@ impl Learner {
         let mut active = vec![true; n];
         let (od, a) = (self.spec.obs_dim, self.spec.act_flat());
         let mut obs = venv.observations().to_vec();
+        let mut arrived = vec![0f32; n * od];
         let mut prev_action = vec![0f32; n * a];
         let (mut reward, mut cost, mut start) = (vec![0f32; n], vec![0f32; n], vec![true; n]);
         let (mut ep_ret, mut ep_cost) = (vec![0f32; n], vec![0f32; n]);
@@ -1138,6 +1323,7 @@ impl Learner {
         while active.iter().any(|&x| x) {
             let input = StepInput {
                 obs: &obs,
+                arrived_obs: &arrived,
                 prev_action: &prev_action,
                 reward: &reward,
                 cost: &cost,
@@ -1145,8 +1331,11 @@ impl Learner {
             };
             let ctg_now = acting.observe(&input);
             let policy = acting.policy(&self.net, &input)?;
+            let eps: Vec<f64> = (0..n)
+                .map(|i| exploration.at(trajs[i].len(), horizons[i], eps_scale[i]))
+                .collect();
             let (net_actions, env_actions) =
-                sample_actions(&policy, &self.spec, eps, false, &mut self.rng);
+                sample_actions(&policy, &self.spec, &eps, false, &mut self.rng);
             for i in (0..n).filter(|&i| active[i]) {
                 let t = &mut trajs[i];
                 t.obs.extend_from_slice(&obs[i * od..(i + 1) * od]);
@@ -1167,6 +1356,14 @@ impl Learner {
             obs.copy_from_slice(venv.observations());
             for i in 0..n {
                 let o = outcomes[i];
+                // Where the action led: the final observation when it ended
+                // the episode (the auto-reset already replaced `obs`).
+                let reached = if o.done() {
+                    venv.final_observations()
+                } else {
+                    venv.observations()
+                };
+                arrived[i * od..(i + 1) * od].copy_from_slice(&reached[i * od..(i + 1) * od]);
                 reward[i] = o.reward;
                 cost[i] = o.cost;
                 start[i] = o.done();
@@ -1176,6 +1373,7 @@ impl Learner {
                 }
                 steps += 1;
                 let t = &mut trajs[i];
+                t.next_obs.extend_from_slice(&arrived[i * od..(i + 1) * od]);
                 t.rewards.push(o.reward);
                 t.costs.push(o.cost);
                 // Kept apart all the way into the TD targets (see make_batch).
@@ -1186,6 +1384,7 @@ impl Learner {
                 if o.done() {
                     t.episode_returns.push(ep_ret[i]);
                     t.episode_costs.push(ep_cost[i]);
+                    t.episode_success.push(o.terminated);
                     ep_ret[i] = 0.0;
                     ep_cost[i] = 0.0;
                     if t.episode_returns.len() == ks[i] {
@@ -1195,7 +1394,12 @@ impl Learner {
             }
         }
         self.env_steps += steps;
+        let (discovery_rate, revisit_rate, found) =
+            search_rates(trajs.iter().map(|t| t.episode_success.as_slice()));
         let stats = RoundStats {
+            discovery_rate,
+            revisit_rate,
+            found,
             trajectories: n,
             steps,
             mean_return: mean(
@@ -1253,12 +1457,14 @@ impl Learner {
                 ),
                 checkpoint: None,
             })?;
-        self.lambda = lambda_update(
-            self.lambda,
-            &batch.max_violation,
-            self.cfg.lambda_lr,
-            self.cfg.lambda_max,
-        );
+        if self.updates >= self.cfg.lambda_warmup_updates {
+            self.lambda = lambda_update(
+                self.lambda,
+                &batch.max_violation,
+                self.cfg.lambda_lr,
+                self.cfg.lambda_max,
+            );
+        }
         polyak(&self.target_vs, &self.vs, self.cfg.tau);
         self.updates += 1;
         Ok(UpdateStats {
@@ -1287,13 +1493,22 @@ impl Learner {
             rng_stream: self.rng.get_stream(),
             rng_word_pos: self.rng.get_word_pos().to_string(),
             spec: self.spec.clone(),
-            pretrain_tasks: Some(PretrainTasks::centre(self.cfg.seed, self.tasks_drawn)),
+            pretrain_tasks: Some(PretrainTasks::centre(
+                self.cfg.seed,
+                match self.cfg.task_pool {
+                    0 => self.tasks_drawn,
+                    pool => self.tasks_drawn.min(pool),
+                },
+            )),
+            tasks_drawn: Some(self.tasks_drawn),
         };
         let config = toml::to_string(&self.cfg).map_err(|e| EppoError::Config(e.to_string()))?;
         let dir = run.write_checkpoint(
             self.updates,
             "eppo",
             self.env.as_str(),
+            self.env
+                .physics_steps_per_action(self.cfg.physics_steps_per_action),
             self.model_manifest(),
             self.cfg.keep_checkpoints,
             |dir| {
@@ -1331,7 +1546,13 @@ impl Learner {
     pub fn resume(cfg: EppoConfig, env: EnvName, dir: &Path) -> Result<Self, EppoError> {
         let manifest = read_manifest(dir)?;
         let mut learner = Learner::new(cfg, env)?;
-        manifest.check_compatible(dir, "eppo", env.as_str(), &learner.model_manifest())?;
+        manifest.check_compatible(
+            dir,
+            "eppo",
+            env.as_str(),
+            env.physics_steps_per_action(learner.cfg.physics_steps_per_action),
+            &learner.model_manifest(),
+        )?;
         let bad = |file: &str, e: String| {
             EppoError::Checkpoint(CheckpointError::Invalid {
                 path: dir.join(file),
@@ -1376,9 +1597,11 @@ impl Learner {
         learner.updates = state.updates;
         learner.env_steps = state.env_steps;
         // Checkpoints from before tasks were recorded restart the count.
-        learner.tasks_drawn = state
-            .pretrain_tasks
-            .map_or(0, |tasks| tasks.end - tasks.start);
+        learner.tasks_drawn = state.tasks_drawn.unwrap_or(
+            state
+                .pretrain_tasks
+                .map_or(0, |tasks| tasks.end - tasks.start),
+        );
         let mut rng = ChaCha8Rng::from_seed(state.rng_seed);
         rng.set_stream(state.rng_stream);
         rng.set_word_pos(
@@ -1406,6 +1629,9 @@ struct TrainState {
     /// The pretraining tasks seen so far (absent in older checkpoints).
     #[serde(default)]
     pretrain_tasks: Option<PretrainTasks>,
+    /// Tasks drawn so far (more than `pretrain_tasks` holds with a task pool).
+    #[serde(default)]
+    tasks_drawn: Option<u64>,
 }
 
 /// The pretraining tasks a checkpoint folder records having seen, if it does
@@ -1426,6 +1652,9 @@ pub fn recorded_pretrain_tasks(dir: &Path) -> Result<Option<PretrainTasks>, Eppo
 
 fn model_manifest(cfg: &EppoConfig, spec: &NetSpec) -> serde_json::Value {
     serde_json::json!({
+        // The token layout: checkpoints from before the arrived observation
+        // was added read a narrower token and are refused by name.
+        "token": "obs,arrived_obs,prev_action,reward,cost,ctg,start",
         "transformer": cfg.model,
         "encoder_hidden": cfg.encoder_hidden,
         "head_hidden": cfg.head_hidden,
@@ -1484,6 +1713,7 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
                 opts.env,
                 &EnvOptions {
                     max_episode_steps: Some(cfg.max_episode_steps),
+                    physics_steps_per_action: cfg.physics_steps_per_action,
                 },
             )
         })
@@ -1558,6 +1788,9 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
             "last_episode_return": round.last_return,
             "first_episode_cost": round.first_cost,
             "last_episode_cost": round.last_cost,
+            "discovery_rate": round.discovery_rate,
+            "revisit_rate": round.revisit_rate,
+            "found_goal": round.found,
             "lambda": learner.lambda,
             "losses/value_loss": avg(|s| s.value_loss),
             "losses/cost_value_loss": avg(|s| s.cost_value_loss),
@@ -1679,6 +1912,7 @@ impl Acting {
                 &self.cfg,
                 &mut self.tokens,
                 &input.obs[i * od..(i + 1) * od],
+                &input.arrived_obs[i * od..(i + 1) * od],
                 &input.prev_action[i * a..(i + 1) * a],
                 input.reward[i],
                 input.cost[i],
@@ -1712,12 +1946,12 @@ impl Acting {
     }
 }
 
-/// Picks actions: sampled (epsilon-greedy on top for discrete) or the mode.
-/// Returns the actions as the network sees them and as the environment takes them.
+/// Picks actions: sampled (epsilon-greedy on top for discrete, row i with
+/// probability `eps[i]`; rows past the slice take none) or the mode. Returns the actions as the network sees them and as the environment takes them.
 fn sample_actions(
     policy: &Policy,
     spec: &NetSpec,
-    eps: f64,
+    eps: &[f64],
     greedy: bool,
     rng: &mut ChaCha8Rng,
 ) -> (Vec<f32>, EnvActions) {
@@ -1733,7 +1967,7 @@ fn sample_actions(
                         row.iter()
                             .enumerate()
                             .fold(0, |best, (k, &x)| if x > row[best] { k } else { best })
-                    } else if rng.r#gen::<f64>() < eps {
+                    } else if rng.r#gen::<f64>() < eps.get(i).copied().unwrap_or(0.0) {
                         rng.gen_range(0..n)
                     } else {
                         let u: f32 = rng.r#gen();
@@ -1827,6 +2061,25 @@ impl EppoAgent {
         memory_estimate(&cfg, &state.spec)
             .check()
             .map_err(|e| bad("config.toml", e))?;
+        // The manifest's model must be what this version builds from the
+        // stored config: a checkpoint from before a token-layout change is
+        // refused by name instead of failing on a tensor shape.
+        manifest
+            .check_compatible(
+                &dir,
+                "eppo",
+                &manifest.env,
+                // The macro action is the checkpoint's own (read_manifest
+                // refuses Point and Car checkpoints that do not record it).
+                manifest.physics_steps_per_action,
+                &model_manifest(&cfg, &state.spec),
+            )
+            .map_err(|e| {
+                bad(
+                    crate::checkpoint::MANIFEST,
+                    format!("{e} (checkpoints written before the token layout changed must be retrained)"),
+                )
+            })?;
         let mut vs = nn::VarStore::new(device);
         let net = EppoNet::new(vs.root(), &cfg, &state.spec)?;
         vs.load(dir.join("model.safetensors"))
@@ -1883,6 +2136,7 @@ impl InContextAgent for EppoAgent {
         let (od, a) = (self.spec.obs_dim, self.spec.act_flat());
         let sizes = [
             ("obs", input.obs.len(), b * od),
+            ("arrived_obs", input.arrived_obs.len(), b * od),
             ("prev_action", input.prev_action.len(), b * a),
             ("reward", input.reward.len(), b),
             ("cost", input.cost.len(), b),
@@ -1922,7 +2176,7 @@ impl InContextAgent for EppoAgent {
             EppoError::Torch(t) => AgentError::Torch(t),
             other => AgentError::Input(other.to_string()),
         })?;
-        let (_, env_actions) = sample_actions(&policy, &self.spec, 0.0, greedy, &mut self.rng);
+        let (_, env_actions) = sample_actions(&policy, &self.spec, &[], greedy, &mut self.rng);
         Ok(match env_actions {
             EnvActions::Discrete(v) => Actions::Discrete(v),
             EnvActions::Continuous(v) => Actions::Continuous(v),
@@ -2138,6 +2392,7 @@ pub(crate) mod tests {
                     EnvName::DarkRoom,
                     &EnvOptions {
                         max_episode_steps: Some(cfg.max_episode_steps),
+                        physics_steps_per_action: cfg.physics_steps_per_action,
                     },
                 )
                 .unwrap()
@@ -2180,6 +2435,108 @@ pub(crate) mod tests {
                 .count();
             assert_eq!(ends, 2);
         }
+    }
+
+    #[test]
+    fn the_goal_enters_the_context_with_its_reward() {
+        // One fixed task (the ladder's first rung): collect until an episode
+        // ends at the goal, then look at the token after it.
+        let mut cfg = tiny();
+        cfg.task_pool = 1;
+        let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+        let goal = sample_task(
+            &spawn_config(EnvName::DarkRoom),
+            Orientation::Centre,
+            pretrain_task_seed(cfg.seed, 0),
+        )
+        .unwrap()
+        .goal;
+        let goal_obs = [goal.row as f32, goal.col as f32];
+        let (_, mut venv) = tiny_learner(0);
+        let mut checked = 0;
+        for _ in 0..300 {
+            learner.collect(&mut venv).unwrap();
+            if learner
+                .replay
+                .trajectories
+                .iter()
+                .any(|t| t.terminated.contains(&true))
+            {
+                break;
+            }
+        }
+        let norm = |x: f32| 2.0 * x / 8.0 - 1.0; // 9x9 grid: [0, 8] -> [-1, 1]
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        for t in &learner.replay.trajectories {
+            let batch = make_batch(&[t], &cfg, &learner.spec, &mut rng, Device::Cpu);
+            let tok = to_vec(&batch.tokens);
+            let d = learner.spec.token_dim();
+            for s in (0..t.len() - 1).filter(|&s| t.terminated[s]) {
+                assert_eq!(&t.next_obs[2 * s..2 * s + 2], &goal_obs, "step {s}");
+                let next = &tok[(s + 1) * d..(s + 2) * d];
+                // The token carrying reward 1: the new episode's start as the
+                // observation, the goal as where the last action arrived.
+                assert_eq!(next[2..4], [norm(goal_obs[0]), norm(goal_obs[1])]);
+                assert_eq!(next[0..2], [0.0, 0.0], "the centre start");
+                assert_eq!(next[2 + 2 + 5], 10.0, "reward x reward_scale");
+                assert_eq!(next[d - 1], 1.0, "episode start flag");
+                checked += 1;
+            }
+        }
+        // A pool of one: every goal reached above was the same task's.
+        assert!(checked > 0, "no episode reached the goal in 300 rounds");
+    }
+
+    #[test]
+    fn exploration_is_bilevel() {
+        let mut cfg = tiny();
+        cfg.eps_start = 1.0;
+        cfg.eps_end = 0.4;
+        cfg.eps_last_start = Some(0.6);
+        cfg.eps_last_end = Some(0.0);
+        cfg.eps_decay_steps = 1000;
+        let start = cfg.exploration(0);
+        assert_eq!((start.first, start.last), (1.0, 0.6));
+        let mid = cfg.exploration(500);
+        assert!((mid.first - 0.7).abs() < 1e-12 && (mid.last - 0.3).abs() < 1e-12);
+        let end = cfg.exploration(10_000);
+        assert!(
+            (end.first - 0.4).abs() < 1e-12 && end.last == 0.0,
+            "annealed, then held"
+        );
+        // Inside a trajectory: linear from the first to the last step, scaled.
+        assert!((end.at(0, 100, 1.0) - 0.4).abs() < 1e-12);
+        assert!((end.at(50, 100, 1.0) - 0.2).abs() < 1e-12);
+        assert!(end.at(100, 100, 1.0).abs() < 1e-12);
+        assert!((end.at(0, 100, 0.5) - 0.2).abs() < 1e-12);
+        // Without the last-step values, epsilon is flat inside a trajectory.
+        cfg.eps_last_start = None;
+        cfg.eps_last_end = None;
+        let flat = cfg.exploration(500);
+        assert_eq!(flat.first, flat.last);
+        // An epsilon outside [0, 1] is refused by name.
+        assert!(cfg.validate().is_ok());
+        cfg.eps_last_end = Some(1.5);
+        assert!(
+            cfg.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("eps_last_end")
+        );
+    }
+
+    #[test]
+    fn search_rates_count_discovery_and_revisits() {
+        let a = [false, true, true, false];
+        let b = [false, false, false, false];
+        let c = [true, true, false, true];
+        let (disc, rev, found) = search_rates([&a[..], &b[..], &c[..]].into_iter());
+        // After episode 1: a discovers at 2 (1 of a's 1 undiscovered tries),
+        // b never (3 tries); a revisits 1 of 2, c 2 of 3.
+        assert!((disc - 1.0 / 4.0).abs() < 1e-12, "{disc}");
+        assert!((rev - 3.0 / 5.0).abs() < 1e-12, "{rev}");
+        assert!((found - 2.0 / 3.0).abs() < 1e-12);
+        assert!(search_rates([&b[..1]].into_iter()).0.is_nan());
     }
 
     #[test]
@@ -2276,10 +2633,12 @@ pub(crate) mod tests {
             act_low: vec![],
             act_high: vec![],
         };
-        // Episode 0: 2 steps, truncated. Episode 1: 2 steps, terminated.
+        // Episode 0: 2 steps, truncated at 0.9. Episode 1: 2 steps,
+        // terminated at the goal, 1.0.
         let t = Trajectory {
             budget: 1.0,
-            obs: vec![0.0; 4],
+            obs: vec![0.0, 0.25, 0.5, 0.75],
+            next_obs: vec![0.25, 0.9, 0.75, 1.0],
             actions: vec![1.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 1.0],
             action_idx: vec![0, 0, 1, 1],
             rewards: vec![0.0, 0.0, 0.0, 1.0],
@@ -2291,12 +2650,16 @@ pub(crate) mod tests {
             episode: vec![0, 0, 1, 1],
             episode_returns: vec![0.0, 1.0],
             episode_costs: vec![2.0, 0.0],
+            episode_success: vec![false, true],
         };
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let mut across = cfg.clone();
         across.bootstrap_across_episodes = true;
         let b = make_batch(&[&t], &across, &spec, &mut rng, Device::Cpu);
         assert_eq!(to_vec(&b.bootstrap), vec![1.0, 1.0, 1.0, 0.0]);
+        // The cost's target stops at every episode end: episode 0's costs
+        // are not charged with episode 1's.
+        assert_eq!(to_vec(&b.cost_bootstrap), vec![1.0, 0.0, 1.0, 0.0]);
         assert_eq!(to_vec(&b.td_valid), vec![1.0, 1.0, 1.0, 1.0]);
         assert_eq!(
             to_vec(&b.violated),
@@ -2309,12 +2672,22 @@ pub(crate) mod tests {
         // Truncated: no target (its final state is not a token); terminated: r alone.
         assert_eq!(to_vec(&b.td_valid), vec![1.0, 0.0, 1.0, 1.0]);
         assert_eq!(to_vec(&b.bootstrap), vec![1.0, 0.0, 1.0, 0.0]);
-        // Tokens carry the previous action, reward, cost and the start flag.
+        // Tokens carry the observation, the observation the previous action
+        // arrived at, the previous action, reward, cost, CTG and start flag.
         let tok = to_vec(&b.tokens);
         let d = spec.token_dim();
         assert_eq!(
             &tok[3 * d..4 * d],
-            &[-1.0, 0.0, 1.0, 0.0, 0.0, 1.0 / 15.0, 0.0]
+            &[0.5, 0.5, 0.0, 1.0, 0.0, 0.0, 1.0 / 15.0, 0.0]
+        );
+        // An episode's first token shows where the last one ended (0.9 -> 0.8
+        // normalised), not only the new start (0.5 -> 0).
+        assert_eq!(tok[2 * d], 0.0);
+        assert!((tok[2 * d + 1] - 0.8).abs() < 1e-6, "{}", tok[2 * d + 1]);
+        assert_eq!(
+            &tok[..2],
+            &[-1.0, -1.0],
+            "nothing arrived before the first step"
         );
     }
 
@@ -2345,8 +2718,15 @@ pub(crate) mod tests {
                     t.costs[s - 1],
                 )
             };
+            let zeros_o = vec![0f32; od];
+            let arrived = if s == 0 {
+                &zeros_o[..]
+            } else {
+                &t.next_obs[(s - 1) * od..s * od]
+            };
             let input = StepInput {
                 obs: &t.obs[s * od..(s + 1) * od],
+                arrived_obs: arrived,
                 prev_action: prev,
                 reward: &[r],
                 cost: &[c],
@@ -2405,6 +2785,7 @@ pub(crate) mod tests {
         let t = Trajectory {
             budget: 10.0,
             obs: (0..n * 3).map(|i| i as f32 * 0.1).collect(),
+            next_obs: (3..n * 3 + 3).map(|i| i as f32 * 0.1).collect(),
             actions: (0..n * 2).map(|i| (i as f32 * 0.37).sin()).collect(),
             action_idx: vec![],
             rewards: vec![0.0, 0.0, 0.0, 0.0, 1.0],
@@ -2416,10 +2797,11 @@ pub(crate) mod tests {
             episode: vec![0; 5],
             episode_returns: vec![1.0],
             episode_costs: vec![2.0],
+            episode_success: vec![true],
         };
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let batch = make_batch(&[&t, &t], &cfg, &spec, &mut rng, Device::Cpu);
-        assert_eq!(batch.tokens.size(), vec![2, 5, 3 + 2 + 4]);
+        assert_eq!(batch.tokens.size(), vec![2, 5, 3 + 3 + 2 + 4]);
         assert_eq!(batch.actions.size(), vec![2, 5, 2]);
         let (lv, lc, lp, _) = losses(&net, &target, &batch, 1.0, &cfg).unwrap();
         let mut opt = Adam::new(
@@ -2460,6 +2842,7 @@ pub(crate) mod tests {
         let mut acting = Acting::new(&net, &spec, &cfg, &[10.0, 20.0]);
         let input = StepInput {
             obs: &[0.0; 6],
+            arrived_obs: &[0.0; 6],
             prev_action: &[0.0; 4],
             reward: &[0.0; 2],
             cost: &[0.0; 2],
@@ -2467,7 +2850,7 @@ pub(crate) mod tests {
         };
         acting.observe(&input);
         let policy = acting.policy(&net, &input).unwrap();
-        let (_, env) = sample_actions(&policy, &spec, 0.0, false, &mut rng);
+        let (_, env) = sample_actions(&policy, &spec, &[], false, &mut rng);
         let EnvActions::Continuous(v) = env else {
             panic!()
         };
@@ -2548,6 +2931,7 @@ pub(crate) mod tests {
             .unwrap();
         let input = StepInput {
             obs: &[4.0, 4.0, 4.0, 4.0],
+            arrived_obs: &[0.0; 4],
             prev_action: &[0.0; 10],
             reward: &[0.0; 2],
             cost: &[0.0; 2],

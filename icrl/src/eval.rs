@@ -320,6 +320,17 @@ pub struct EpisodeStats {
     pub violation: MeanSe,
     /// Fraction of conditions that reached the goal.
     pub success: MeanSe,
+    /// Discovery rate: P(goal at k | not reached in episodes 1..k-1), over the
+    /// conditions of each task with no earlier success (tasks with none are
+    /// left out; `n` says how many remain). Absent from older result files.
+    #[serde(default = "MeanSe::undefined")]
+    pub discovery: MeanSe,
+    /// Revisit rate: P(goal at k | reached earlier), the same way.
+    #[serde(default = "MeanSe::undefined")]
+    pub revisit: MeanSe,
+    /// Fraction of conditions that reached the goal in some episode 1..=k.
+    #[serde(default = "MeanSe::undefined")]
+    pub found_by: MeanSe,
 }
 
 /// Budget-sweep statistics of one condition, over tasks.
@@ -376,13 +387,9 @@ fn slope(xs: &[f64], ys: &[f64]) -> Option<f64> {
     (sxx > 0.0).then(|| sxy / sxx)
 }
 
-/// Mean and s.e. that never fails: callers pass non-empty samples.
+/// Mean and s.e., undefined (NaN) for an empty sample.
 fn ms(xs: &[f64]) -> MeanSe {
-    mean_se(xs).unwrap_or(MeanSe {
-        mean: f64::NAN,
-        se: f64::NAN,
-        n: 0,
-    })
+    mean_se(xs).unwrap_or_else(MeanSe::undefined)
 }
 
 impl EvalResult {
@@ -402,6 +409,22 @@ impl EvalResult {
             .collect()
     }
 
+    /// Per task, the fraction of conditions reaching the goal at episode k
+    /// among those that had (`found_before`) or had not reached it earlier;
+    /// tasks without such a condition are skipped.
+    fn conditional_success(&self, k: usize, found_before: bool) -> Vec<f64> {
+        (0..self.n_tasks())
+            .filter_map(|t| {
+                let (hits, n) = (0..self.conditions.len())
+                    .filter(|&c| self.reached_goal[c][t][..k].contains(&true) == found_before)
+                    .fold((0usize, 0usize), |(h, n), c| {
+                        (h + usize::from(self.reached_goal[c][t][k]), n + 1)
+                    });
+                (n > 0).then(|| hits as f64 / n as f64)
+            })
+            .collect()
+    }
+
     /// Curves, sweep and trend (see the module documentation for the averaging).
     pub fn summary(&self) -> Summary {
         let k_n = self.episodes;
@@ -415,6 +438,11 @@ impl EvalResult {
                 })),
                 success: ms(&self.per_task_over_conditions(k, |c, t, k| {
                     f64::from(u8::from(self.reached_goal[c][t][k]))
+                })),
+                discovery: ms(&self.conditional_success(k, false)),
+                revisit: ms(&self.conditional_success(k, true)),
+                found_by: ms(&self.per_task_over_conditions(k, |c, t, k| {
+                    f64::from(u8::from(self.reached_goal[c][t][..=k].contains(&true)))
                 })),
             })
             .collect();
@@ -679,6 +707,7 @@ fn run_batch(
     let mut cost = vec![0.0f32; b];
     let mut start = vec![true; b];
     let mut obs = venv.observations().to_vec();
+    let mut arrived = vec![0.0f32; b * obs_dim];
     let mut discrete = Vec::with_capacity(b);
     let mut continuous = Vec::with_capacity(b * act_dim);
     let max_steps = k_n * t_max;
@@ -698,6 +727,7 @@ fn run_batch(
         }
         let input = StepInput {
             obs: &obs,
+            arrived_obs: &arrived,
             prev_action: &prev_action,
             reward: &reward,
             cost: &cost,
@@ -755,6 +785,13 @@ fn run_batch(
             reward[i] = o.reward;
             cost[i] = o.cost;
             start[i] = o.done();
+            let reached = if o.done() {
+                venv.final_observations()
+            } else {
+                venv.observations()
+            };
+            arrived[i * obs_dim..(i + 1) * obs_dim]
+                .copy_from_slice(&reached[i * obs_dim..(i + 1) * obs_dim]);
             if recorded_row == Some(i)
                 && let Some(r) = recording.as_mut()
                 && state[i].done < k_n
@@ -1275,6 +1312,18 @@ mod tests {
         // Over budget: task 0 (2 > 1 only), task 1 never, task 2 both.
         close(e1.violation.mean, 0.5);
         close(e1.success.mean, 0.5);
+        // Episode 1: nothing earlier, so discovery is success and revisit undefined.
+        close(e1.discovery.mean, 0.5);
+        assert!(e1.revisit.mean.is_nan() && e1.revisit.n == 0);
+        // Episode 2: task 0 discovers in both conditions (1), task 2's
+        // undiscovered condition fails (0); tasks 1 and 2 revisit (1, 1).
+        let e2 = &s.per_episode[1];
+        close(e2.discovery.mean, 0.5);
+        assert_eq!(e2.discovery.n, 2);
+        close(e2.revisit.mean, 1.0);
+        assert_eq!(e2.revisit.n, 2);
+        close(e2.found_by.mean, 2.5 / 3.0);
+        close(e1.found_by.mean, 0.5);
         // Episode 2: returns 1, 1, 0.5; costs 0, 0, 3.
         close(s.per_episode[1].ret.mean, 2.5 / 3.0);
         close(s.per_episode[1].cost.mean, 1.0);

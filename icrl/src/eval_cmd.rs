@@ -111,6 +111,10 @@ pub struct LoadedAgent {
     pub parameters: Vec<(String, tch::Tensor)>,
     /// The model's context limit, when it has a hard one (EPPO).
     pub context: Option<ContextLimit>,
+    /// Point and Car: the macro action (physics steps per agent action) the
+    /// checkpoint was trained with; evaluation builds its environments with
+    /// it. `None`: the environment's default (random policy, SafeDarkRoom).
+    pub physics_steps_per_action: Option<usize>,
     /// What the checkpoint's run reached (e.g. "update 1200 of 3000"), for the report.
     pub note: String,
 }
@@ -226,6 +230,9 @@ pub struct EvalReport {
     pub tasks: usize,
     pub episodes: usize,
     pub max_episode_steps: usize,
+    /// Point and Car: MuJoCo physics steps per agent action (absent for SafeDarkRoom).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub physics_steps_per_action: Option<usize>,
     pub threads: usize,
     /// Parameter checksums before and after the evaluation (equal: frozen).
     pub parameters_checksum: Option<[u64; 2]>,
@@ -331,10 +338,10 @@ fn write_csvs(report: &EvalReport, stem: &Path) -> Result<Vec<PathBuf>, EvalCmdE
     let episodes = PathBuf::from(format!("{}_episodes.csv", stem.display()));
     let mut f = std::fs::File::create(&episodes).map_err(io_err(&episodes))?;
     let mut text = header.clone();
-    text.push_str("k,return_mean,return_se,cost_mean,cost_se,violation_mean,violation_se,success_mean,success_se,n_tasks\n");
+    text.push_str("k,return_mean,return_se,cost_mean,cost_se,violation_mean,violation_se,success_mean,success_se,n_tasks,discovery_mean,discovery_se,discovery_n_tasks,revisit_mean,revisit_se,revisit_n_tasks,found_by_mean,found_by_se\n");
     for e in &report.summary.per_episode {
         text.push_str(&format!(
-            "{},{},{},{},{},{},{},{},{},{}\n",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
             e.k,
             e.ret.mean,
             e.ret.se,
@@ -344,7 +351,15 @@ fn write_csvs(report: &EvalReport, stem: &Path) -> Result<Vec<PathBuf>, EvalCmdE
             e.violation.se,
             e.success.mean,
             e.success.se,
-            e.ret.n
+            e.ret.n,
+            e.discovery.mean,
+            e.discovery.se,
+            e.discovery.n,
+            e.revisit.mean,
+            e.revisit.se,
+            e.revisit.n,
+            e.found_by.mean,
+            e.found_by.se,
         ));
     }
     f.write_all(text.as_bytes()).map_err(io_err(&episodes))?;
@@ -387,10 +402,12 @@ fn run_one(
     // The time limit: asked for, else the one the policy was trained with,
     // else the environment's.
     let env = opts.env;
+    // The macro action: the one the checkpoint was trained with.
     let env_options = EnvOptions {
         max_episode_steps: opts
             .max_episode_steps
             .or(loaded.context.map(|c| c.max_episode_steps)),
+        physics_steps_per_action: loaded.physics_steps_per_action,
     };
     let make = move || -> Result<Box<dyn CmdpEnv>, EnvError> { make_env(env, &env_options) };
     let t_max = make()?.max_episode_steps();
@@ -502,6 +519,7 @@ fn run_one(
         tasks: opts.tasks,
         episodes,
         max_episode_steps: t_max,
+        physics_steps_per_action: env.physics_steps_per_action(loaded.physics_steps_per_action),
         threads: opts.threads,
         parameters_checksum: before.zip(after).map(|(b, a)| [b, a]),
         wall_seconds,
@@ -629,6 +647,7 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
         opts.env,
         &EnvOptions {
             max_episode_steps: opts.max_episode_steps,
+            ..EnvOptions::default()
         },
     )?;
     if opts.random {
@@ -640,6 +659,7 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
             budget_range: None,
             parameters: Vec::new(),
             context: None,
+            physics_steps_per_action: None,
             note: String::new(),
         });
     }

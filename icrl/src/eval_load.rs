@@ -142,6 +142,9 @@ pub fn load_checkpoint(path: &Path, env: EnvName) -> Result<LoadedAgent, EvalCmd
                 // EppoAgent keeps its VarStore private: no checksum handle.
                 parameters: Vec::new(),
                 context: Some(context),
+                // Recorded in the manifest (read_manifest refuses Point and
+                // Car checkpoints that do not record it).
+                physics_steps_per_action: manifest.physics_steps_per_action,
                 note: format!(
                     "EPPO checkpoint after {} updates (run planned {}), K_max {}, context {} steps",
                     manifest.updates, cfg.total_updates, cfg.k_max, cfg.model.max_len
@@ -178,6 +181,8 @@ pub fn load_checkpoint(path: &Path, env: EnvName) -> Result<LoadedAgent, EvalCmd
                 parameters,
                 // AD slides its context window: any number of episodes runs.
                 context: None,
+                // The dataset's, recorded in spec.json.
+                physics_steps_per_action: info.physics_steps_per_action,
                 note: format!(
                     "AD run after {} of {} updates",
                     info.updates_done, info.updates_planned
@@ -250,6 +255,76 @@ mod tests {
         assert!(e.contains("model shape does not fit point"), "{e}");
         check_shape(&dir, EnvName::DarkRoom, 2, Some(5), 5).unwrap();
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn point_checkpoints_carry_their_macro_action_and_old_ones_are_refused() {
+        let root =
+            std::env::temp_dir().join(format!("icrl-eval-load-macro-{}", std::process::id()));
+        // A tiny EPPO run on Point with a non-default macro action.
+        let cfg = EppoConfig {
+            n_envs: 2,
+            batch_size: 2,
+            total_updates: 2,
+            physics_steps_per_action: Some(10),
+            ..crate::eppo::tests::tiny()
+        };
+        let trained = crate::eppo::train(&PretrainOptions {
+            env: EnvName::Point,
+            cfg: cfg.clone(),
+            out: root.join("runs"),
+            resume: None,
+            progress: false,
+        })
+        .unwrap();
+        let ckpt = trained.last_checkpoint.clone();
+        // Loaded with its recorded value; evaluation reports it.
+        let agent = load_checkpoint(&trained.run_dir, EnvName::Point).unwrap();
+        assert_eq!(agent.physics_steps_per_action, Some(10));
+        let mut opts = options(root.join("eval"));
+        opts.env = EnvName::Point;
+        opts.tasks = 1;
+        opts.n_budgets = 1;
+        run(vec![agent], &opts).unwrap();
+        let r = report(&root.join("eval/eppo_point.json"));
+        assert_eq!(r["physics_steps_per_action"].as_u64(), Some(10));
+        // Resuming with another macro action is refused, naming both.
+        let e = crate::eppo::train(&PretrainOptions {
+            env: EnvName::Point,
+            cfg: EppoConfig {
+                physics_steps_per_action: None,
+                ..cfg
+            },
+            out: root.join("runs"),
+            resume: Some(trained.run_dir.clone()),
+            progress: false,
+        })
+        .err()
+        .unwrap()
+        .to_string();
+        assert!(
+            e.contains("physics steps per agent action")
+                && e.contains("\"10\"")
+                && e.contains("\"50\""),
+            "{e}"
+        );
+        // A checkpoint from before the macro action was recorded.
+        let path = ckpt.join(MANIFEST);
+        let mut json: serde_json::Value =
+            serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+        json.as_object_mut()
+            .unwrap()
+            .remove("physics_steps_per_action");
+        std::fs::write(&path, json.to_string()).unwrap();
+        let e = load_checkpoint(&ckpt, EnvName::Point)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(
+            e.contains("does not record its macro action") && e.contains("5 physics steps"),
+            "{e}"
+        );
+        std::fs::remove_dir_all(&root).unwrap();
     }
 
     #[test]

@@ -25,7 +25,12 @@
 //! File attributes: `env` (string), `config` (string: the generating
 //! configuration as JSON), `seed` (uint64), `format_version` (uint32),
 //! `obs_dim`, `action_dim`, `action_n` (number of discrete actions, 0 for a
-//! continuous space), `grid_size` (uint64). Every array is chunked and
+//! continuous space), `grid_size` (uint64), `physics_steps_per_action`
+//! (uint64: Point and Car, the MuJoCo physics steps per agent action the
+//! histories were played with, the macro action; 0 for SafeDarkRoom, which has
+//! no physics). A Point or Car file without it was made when an agent action
+//! was 5 physics steps (before 2026-11-30) and is refused: its steps are 10x
+//! shorter than today's environment's. Every array is chunked and
 //! deflate-compressed. Episodes split at `terminals | timeouts`; every history
 //! ends on an episode boundary.
 //!
@@ -47,7 +52,7 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 use hdf5::types::VarLenUnicode;
-use safety_envs::{Cell, Task};
+use safety_envs::{Cell, EnvName, OLD_PHYSICS_STEPS_PER_ACTION, PHYSICS_STEPS_PER_ACTION, Task};
 use thiserror::Error;
 
 /// Version of the layout above; readers refuse any other.
@@ -126,6 +131,9 @@ pub enum Problem {
     WrongEnv { found: String, expected: String },
     /// Written by another layout version.
     WrongVersion { found: u32, expected: u32 },
+    /// A Point or Car file that does not record its macro action: made under
+    /// the old 5-physics-step action.
+    UnrecordedMacroAction { env: String },
     /// A required dataset or attribute is absent or has the wrong shape.
     Malformed(String),
     /// A history with no steps, or a file with no histories.
@@ -150,6 +158,14 @@ impl fmt::Display for Problem {
             Problem::WrongVersion { found, expected } => write!(
                 f,
                 "format version {found} is not supported (this build reads version {expected})"
+            ),
+            Problem::UnrecordedMacroAction { env } => write!(
+                f,
+                "this {env} dataset does not record its macro action, so it was made when an agent \
+                 action was {OLD_PHYSICS_STEPS_PER_ACTION} physics steps (before 2026-11-30); the \
+                 environments now take {PHYSICS_STEPS_PER_ACTION} (5 Safety-Gymnasium steps x 10 physics \
+                 steps each), so its histories would teach a 10x shorter action: regenerate it with \
+                 `icrl dataset --env {env}`"
             ),
             Problem::Malformed(what) => write!(f, "malformed: {what}"),
             Problem::Empty(what) => write!(f, "empty: {what}"),
@@ -193,6 +209,9 @@ pub struct DatasetInfo {
     pub action_n: Option<usize>,
     /// Task grid side.
     pub grid_size: usize,
+    /// Point and Car: MuJoCo physics steps per agent action (the macro
+    /// action) the histories were played with; `None` for SafeDarkRoom.
+    pub physics_steps_per_action: Option<usize>,
 }
 
 /// One learning history: every step of every episode of one learning run, in order.
@@ -640,6 +659,10 @@ fn write_raw(tmp: &Path, file: &HistoryFile, n_obstacles: usize) -> hdf5::Result
         ("action_dim", info.action_dim),
         ("action_n", info.action_n.unwrap_or(0)),
         ("grid_size", info.grid_size),
+        (
+            "physics_steps_per_action",
+            info.physics_steps_per_action.unwrap_or(0),
+        ),
     ] {
         f.new_attr::<u64>()
             .create(name)?
@@ -700,6 +723,22 @@ pub fn read_histories(
         }));
     }
     let action_n = u64_attr("action_n")? as usize;
+    // Absent in files from before it was recorded: refused for Point and Car.
+    let physics_steps_per_action = match f.attr("physics_steps_per_action") {
+        Ok(a) => a
+            .read_scalar::<u64>()
+            .map_err(|e| malformed(format!("attribute physics_steps_per_action: {e}")))?
+            as usize,
+        Err(_) => 0,
+    };
+    let has_physics = env
+        .parse::<EnvName>()
+        .ok()
+        .and_then(|e| e.physics_steps_per_action(None))
+        .is_some();
+    if has_physics && physics_steps_per_action == 0 {
+        return Err(err(Problem::UnrecordedMacroAction { env }));
+    }
     let info = DatasetInfo {
         env,
         config: text_attr("config")?,
@@ -708,6 +747,8 @@ pub fn read_histories(
         action_dim: u64_attr("action_dim")? as usize,
         action_n: (action_n > 0).then_some(action_n),
         grid_size: u64_attr("grid_size")? as usize,
+        physics_steps_per_action: (physics_steps_per_action > 0)
+            .then_some(physics_steps_per_action),
     };
     if info.action_n.is_some() && info.action_dim != 1 {
         return Err(malformed(format!(
@@ -870,6 +911,7 @@ mod tests {
                 action_dim: 1,
                 action_n: Some(5),
                 grid_size: 9,
+                physics_steps_per_action: None,
             },
             histories,
         }
@@ -986,6 +1028,39 @@ mod tests {
             ),
             "{msg}"
         );
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    #[test]
+    fn macro_action_round_trips_and_old_mujoco_files_are_refused() {
+        let dir = tmpdir("macro");
+        let path = dir.join("h.h5");
+        let mut file = tiny_file(1);
+        // Relabelled as a Point file (the layout does not care what the
+        // observations mean).
+        file.info.env = "point".into();
+        file.info.physics_steps_per_action = Some(50);
+        write_histories(&path, &file).unwrap();
+        let back = read_histories(&path, Some("point")).unwrap();
+        assert_eq!(back.info.physics_steps_per_action, Some(50));
+        // A file from before the attribute existed.
+        edit(&path, |f| {
+            f.delete_attr("physics_steps_per_action").unwrap()
+        });
+        let (p, msg) = problem_of(&path, Some("point"));
+        assert!(matches!(p, Problem::UnrecordedMacroAction { .. }), "{msg}");
+        assert!(
+            msg.contains("5 physics steps") && msg.contains("icrl dataset --env point"),
+            "{msg}"
+        );
+        // SafeDarkRoom has no physics: no attribute is fine.
+        let path = dir.join("d.h5");
+        write_histories(&path, &tiny_file(1)).unwrap();
+        edit(&path, |f| {
+            f.delete_attr("physics_steps_per_action").unwrap()
+        });
+        let back = read_histories(&path, Some("darkroom")).unwrap();
+        assert_eq!(back.info.physics_steps_per_action, None);
         std::fs::remove_dir_all(dir).unwrap();
     }
 
@@ -1136,6 +1211,7 @@ for name, (shape, dtype) in want.items():
 a = f.attrs
 assert a["env"] == "darkroom" and int(a["format_version"]) == 1 and int(a["seed"]) == 7, dict(a)
 assert int(a["action_n"]) == 5 and int(a["obs_dim"]) == 2
+assert int(a["physics_steps_per_action"]) == 0, dict(a)
 assert list(f["episode_id"][:5]) == [0, 0, 0, 1, 1]
 assert list(f["history_id"][:]) == [0] * 5 + [1] * 5 + [2] * 5
 assert float(f["rewards"][:].sum()) == 3.0

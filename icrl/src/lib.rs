@@ -5,6 +5,7 @@
 //! - [`model`]: the one causal transformer (with KV cache) every learner shares.
 //! - [`optim`]: Adam whose moments can be checkpointed.
 //! - [`checkpoint`]: run folders, atomic checkpoints with manifests, metrics (JSONL).
+//! - [`json_bounds`]: space bounds (possibly infinite) in checkpoint JSON.
 //! - [`presets`]: built-in TOML presets and `--set key=value` overrides.
 //! - [`task_seeds`]: the split of task seeds between pretraining and evaluation.
 //! - [`guard`]: setting ranges, finite-weight checks and the memory estimate.
@@ -22,6 +23,7 @@
 //! - [`eval_cmd`]: the `eval` command (checkpoints in, JSON/CSV/figures/GIF out).
 //! - [`eval_load`]: loading EPPO and AD checkpoints for evaluation.
 //! - [`plots`]: the paper's evaluation figures and animations.
+//! - [`run_summary`]: a finished run's learning trend against a random policy, and its eval command.
 //! - [`stats`]: mean and standard error.
 
 pub mod ad;
@@ -34,11 +36,13 @@ pub mod eval_cmd;
 pub mod eval_load;
 pub mod guard;
 pub mod histories;
+pub mod json_bounds;
 pub mod model;
 pub mod optim;
 pub mod plots;
 pub mod ppo_lagrangian;
 pub mod presets;
+pub mod run_summary;
 pub mod stats;
 pub mod stop;
 pub mod task_seeds;

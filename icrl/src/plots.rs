@@ -137,16 +137,70 @@ pub struct EnvCurves {
     pub random: Option<Summary>,
 }
 
-fn pixel_size(cols: usize) -> (u32, u32) {
-    (480 * cols.max(1) as u32, 760)
+fn pixel_size(rows: usize, cols: usize) -> (u32, u32) {
+    (480 * cols.max(1) as u32, 380 * rows.max(2) as u32)
+}
+
+/// The colour halfway to white (a method's second curve in one panel).
+fn lighter(c: RGBColor) -> RGBColor {
+    let half = |x: u8| ((u16::from(x) + 255) / 2) as u8;
+    RGBColor(half(c.0), half(c.1), half(c.2))
 }
 
 /// Figure 1: return and cost against the episode index, one column per
-/// environment. Writes `<stem>.png` and `<stem>.svg`.
+/// environment, and a third row with the in-context search rates (discovery:
+/// goal found with no earlier success; revisit: found again after one).
+/// Writes `<stem>.png` and `<stem>.svg`.
 pub fn figure1(envs: &[EnvCurves], stem: &Path) -> Result<Vec<PathBuf>, PlotError> {
     let mut returns = Vec::new();
     let mut costs = Vec::new();
+    let mut searches = Vec::new();
     for e in envs {
+        let mut search = Panel {
+            title: format!("{}: in-context search", e.env),
+            x_label: "episode k".into(),
+            y_label: "P(goal at k | earlier)".into(),
+            ..Default::default()
+        };
+        let labelled = e
+            .methods
+            .iter()
+            .enumerate()
+            .map(|(i, (l, s))| {
+                (
+                    l.as_str(),
+                    s,
+                    METHOD_COLOURS[i % METHOD_COLOURS.len()],
+                    false,
+                )
+            })
+            .chain(
+                e.random
+                    .iter()
+                    .map(|s| ("random policy", s, RANDOM_COLOUR, true)),
+            );
+        for (label, s, colour, thin) in labelled {
+            // Episode 1 has no earlier episode: the rates start at k = 2.
+            let later = &s.per_episode[1.min(s.per_episode.len())..];
+            let x: Vec<f64> = later.iter().map(|p| p.k as f64).collect();
+            search.bands.push(Band {
+                label: format!("{label}: discovery"),
+                x: x.clone(),
+                mean: later.iter().map(|p| p.discovery.mean).collect(),
+                se: Vec::new(),
+                colour,
+                thin,
+            });
+            search.bands.push(Band {
+                label: format!("{label}: revisit"),
+                x,
+                mean: later.iter().map(|p| p.revisit.mean).collect(),
+                se: Vec::new(),
+                colour: lighter(colour),
+                thin,
+            });
+        }
+        searches.push(search);
         let mut ret = Panel {
             title: format!("{}: episode return", e.env),
             x_label: "episode k".into(),
@@ -214,7 +268,8 @@ pub fn figure1(envs: &[EnvCurves], stem: &Path) -> Result<Vec<PathBuf>, PlotErro
         costs.push(cost);
     }
     returns.extend(costs);
-    draw_panels(stem, 2, envs.len(), &returns)
+    returns.extend(searches);
+    draw_panels(stem, 3, envs.len(), &returns)
 }
 
 /// Figure 2: total return and maximum episode cost against the budget (CTG),
@@ -307,7 +362,7 @@ pub fn draw_panels(
             source,
         })?;
     }
-    let size = pixel_size(cols);
+    let size = pixel_size(rows, cols);
     let png = stem.with_extension("png");
     let svg = stem.with_extension("svg");
     let err = |p: &Path| {
@@ -445,7 +500,13 @@ fn draw_panel<DB: DrawingBackend>(
                 )))
                 .map_err(e)?;
         }
-        let pts: Vec<(f64, f64)> = b.x.iter().copied().zip(b.mean.iter().copied()).collect();
+        // Undefined points (a rate with nothing to count) are left out.
+        let pts: Vec<(f64, f64)> =
+            b.x.iter()
+                .copied()
+                .zip(b.mean.iter().copied())
+                .filter(|p| p.1.is_finite())
+                .collect();
         let colour = b.colour;
         let style = colour.stroke_width(2);
         // Reference curves thin and solid (thick dashed polylines leave

@@ -134,6 +134,10 @@ mod tests {
             );
             let cfg: EppoConfig = resolve(name, preset_table(m, e, p).unwrap()).unwrap();
             cfg.validate().unwrap_or_else(|err| panic!("{name}: {err}"));
+            // The macro action, spelled out in every Point and Car preset:
+            // 5 Safety-Gymnasium steps x 10 physics steps; none for DarkRoom.
+            let want = (e != "darkroom").then_some(safety_envs::PHYSICS_STEPS_PER_ACTION);
+            assert_eq!(cfg.physics_steps_per_action, want, "{name}");
         }
     }
 

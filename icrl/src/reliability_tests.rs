@@ -242,6 +242,7 @@ fn eppo_non_finite_values_stop_training_and_are_refused_on_load() {
                     EnvName::DarkRoom,
                     &safety_envs::EnvOptions {
                         max_episode_steps: Some(6),
+                        ..Default::default()
                     },
                 )
             })
@@ -441,6 +442,7 @@ fn every_shipped_preset_fits_the_memory_estimate() {
                 dataset: String::new(),
                 dataset_config: String::new(),
                 pretrain_tasks: None,
+                physics_steps_per_action: None,
             };
             // A paper-sized dataset: 100 tasks x 3 limits x 50k steps.
             let m = ad::memory_estimate(&cfg, &spec, 15_000_000);
@@ -453,7 +455,8 @@ fn every_shipped_preset_fits_the_memory_estimate() {
 #[test]
 fn ppo_lagrangian_settings_are_checked() {
     use crate::ppo_lagrangian::PpoLagConfig;
-    let cases: [(fn(&mut PpoLagConfig), &str); 5] = [
+    type Case = (fn(&mut PpoLagConfig), &'static str);
+    let cases: [Case; 5] = [
         (
             |c| c.learning_rate = f64::NAN,
             "learning_rate = NaN: must be a finite number in (0, 1]",

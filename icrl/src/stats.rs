@@ -2,15 +2,33 @@
 
 use serde::{Deserialize, Serialize};
 
-/// The mean of a sample and its standard error.
+/// The mean of a sample and its standard error. An empty sample's mean and
+/// s.e. are NaN, written to JSON as `null` and read back as NaN.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct MeanSe {
+    #[serde(deserialize_with = "null_as_nan")]
     pub mean: f64,
     /// `s / sqrt(n)` with the unbiased sample standard deviation `s` (divisor
     /// `n - 1`); 0 when `n < 2`.
+    #[serde(deserialize_with = "null_as_nan")]
     pub se: f64,
     /// Sample size.
     pub n: usize,
+}
+
+impl MeanSe {
+    /// The statistics of an empty sample.
+    pub fn undefined() -> Self {
+        MeanSe {
+            mean: f64::NAN,
+            se: f64::NAN,
+            n: 0,
+        }
+    }
+}
+
+fn null_as_nan<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> {
+    Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
 }
 
 /// Mean and standard error of `xs`; `None` for an empty sample.

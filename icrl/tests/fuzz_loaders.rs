@@ -238,6 +238,7 @@ fn history_file(path: &Path) {
                 action_dim: 1,
                 action_n: Some(5),
                 grid_size: 9,
+                physics_steps_per_action: None,
             },
             histories,
         },

@@ -89,4 +89,10 @@ pub trait CmdpEnv: Send {
     fn step(&mut self, action: Action<'_>, obs: &mut [f32]) -> Result<StepOutcome, EnvError>;
     /// Agent steps taken in the current episode.
     fn elapsed_steps(&self) -> usize;
+    /// MuJoCo physics steps per agent action (the macro action), for
+    /// environments simulated in MuJoCo; `None` for those without physics
+    /// (SafeDarkRoom). Checkpoints and datasets record it.
+    fn physics_steps_per_action(&self) -> Option<usize> {
+        None
+    }
 }

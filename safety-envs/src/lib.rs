@@ -21,7 +21,10 @@ pub use darkroom::{DarkRoomConfig, SafeDarkRoom};
 pub use env::{Action, CmdpEnv, Space, StepOutcome};
 pub use error::{EnvError, MujocoError};
 pub use make::{EnvName, EnvOptions, make_env, spawn_config};
-pub use nav::{NavConfig, Robot, SafeDarkMujoco};
+pub use nav::{
+    NavConfig, OLD_PHYSICS_STEPS_PER_ACTION, PHYSICS_STEPS_PER_ACTION, PHYSICS_STEPS_PER_SG_STEP,
+    Robot, SG_STEPS_PER_ACTION, SafeDarkMujoco,
+};
 pub use spawn::{Cell, Distance, Orientation, SpawnConfig, Task, sample_task};
 pub use vec_env::{VecAction, VecEnv};
 
@@ -31,7 +34,7 @@ pub mod prelude {
     pub use crate::env::{Action, CmdpEnv, Space, StepOutcome};
     pub use crate::error::{EnvError, MujocoError};
     pub use crate::make::{EnvName, EnvOptions, make_env, spawn_config};
-    pub use crate::nav::{NavConfig, Robot, SafeDarkMujoco};
+    pub use crate::nav::{NavConfig, PHYSICS_STEPS_PER_ACTION, Robot, SafeDarkMujoco};
     pub use crate::spawn::{Cell, Distance, Orientation, SpawnConfig, Task, sample_task};
     pub use crate::vec_env::{VecAction, VecEnv};
 }

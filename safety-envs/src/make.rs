@@ -33,6 +33,22 @@ impl EnvName {
     }
 }
 
+impl EnvName {
+    /// The macro action `make_env(self, ..)` uses when asked for `asked`
+    /// physics steps per agent action: Point and Car `asked`, else
+    /// [`crate::nav::PHYSICS_STEPS_PER_ACTION`] (50); SafeDarkRoom has no
+    /// physics, `None` (and `make_env` refuses a value for it). Checkpoints
+    /// and datasets record this resolved value.
+    pub fn physics_steps_per_action(self, asked: Option<usize>) -> Option<usize> {
+        match self {
+            EnvName::DarkRoom => None,
+            EnvName::Point | EnvName::Car => {
+                Some(asked.unwrap_or(crate::nav::PHYSICS_STEPS_PER_ACTION))
+            }
+        }
+    }
+}
+
 impl fmt::Display for EnvName {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         f.write_str(self.as_str())
@@ -59,6 +75,11 @@ impl FromStr for EnvName {
 pub struct EnvOptions {
     /// Time limit in agent steps (defaults: darkroom 30, point/car 75).
     pub max_episode_steps: Option<usize>,
+    /// Point and Car: MuJoCo physics steps per agent action (the macro
+    /// action), default [`crate::nav::PHYSICS_STEPS_PER_ACTION`] = 5
+    /// Safety-Gymnasium steps x 10 physics steps = 50. SafeDarkRoom has no
+    /// physics: setting it there is an error.
+    pub physics_steps_per_action: Option<usize>,
 }
 
 /// The task distribution (grid and obstacle count) of `name`, with alpha 0.5
@@ -75,6 +96,12 @@ pub fn spawn_config(name: EnvName) -> SpawnConfig {
 pub fn make_env(name: EnvName, options: &EnvOptions) -> Result<Box<dyn CmdpEnv>, EnvError> {
     match name {
         EnvName::DarkRoom => {
+            if let Some(n) = options.physics_steps_per_action {
+                return Err(EnvError::InvalidConfig(format!(
+                    "physics_steps_per_action = {n} was given, but darkroom has no physics \
+                     (the option is for point and car)"
+                )));
+            }
             let mut config = DarkRoomConfig::default();
             if let Some(t) = options.max_episode_steps {
                 config.max_episode_steps = t;
@@ -90,6 +117,9 @@ pub fn make_env(name: EnvName, options: &EnvOptions) -> Result<Box<dyn CmdpEnv>,
             let mut config = crate::nav::NavConfig::new(robot);
             if let Some(t) = options.max_episode_steps {
                 config.max_episode_steps = t;
+            }
+            if let Some(n) = options.physics_steps_per_action {
+                config.physics_steps_per_action = n;
             }
             Ok(Box::new(crate::nav::SafeDarkMujoco::new(config)?))
         }

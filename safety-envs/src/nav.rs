@@ -22,8 +22,18 @@
 //! - Actions: continuous, in `[-1, 1]` per actuator (Point: thrust along the
 //!   heading, turn rate; Car: left and right wheel torque). NaN, infinity or a
 //!   wrong length is an error; finite values outside `[-1, 1]` are **clamped**
-//!   to it (MuJoCo's `ctrlrange` would do the same). Each action is held for
-//!   `frame_skip` physics steps (default 5).
+//!   to it (MuJoCo's `ctrlrange` would do the same).
+//! - **Macro action:** each agent action is held for
+//!   [`NavConfig::physics_steps_per_action`] MuJoCo physics steps, default
+//!   [`PHYSICS_STEPS_PER_ACTION`] = 50: the paper repeats an action for
+//!   [`SG_STEPS_PER_ACTION`] = 5 Safety-Gymnasium environment steps, and each
+//!   of those is [`PHYSICS_STEPS_PER_SG_STEP`] = 10 physics steps
+//!   (`frameskip_binom_n`). One agent step is therefore 0.1 s of simulated
+//!   time for Point (timestep 0.002) and 0.2 s for Car (0.004), and the
+//!   75-step time limit 7.5 s / 15 s. (Until 2026-11-30 the default was 5
+//!   physics steps, a misreading that left Point about 0.5 m of travel per
+//!   episode; [`OLD_PHYSICS_STEPS_PER_ACTION`] names it so that files written
+//!   under it can be recognised and refused.)
 //! - Reward 1 when the robot's xy position is within the goal radius (0.3) at
 //!   the end of an agent step; that terminates the episode.
 //! - Cost 1 for an agent step if the robot's xy position was inside any hazard
@@ -67,6 +77,26 @@ const PARKED: [f64; 3] = [0.0, 0.0, -10.0];
 
 /// Height of the goal and hazard discs' centres above the floor.
 const MARKER_Z: f64 = 0.01;
+
+/// Safety-Gymnasium environment steps per agent action: the paper's macro
+/// action (Appendix C: "a policy action is repeated over five internal
+/// simulation steps, reducing the default 250 simulation steps to 250/n";
+/// Safety-Gymnasium's 250-step episode limit counts its environment steps,
+/// each of them [`PHYSICS_STEPS_PER_SG_STEP`] physics steps).
+pub const SG_STEPS_PER_ACTION: usize = 5;
+
+/// MuJoCo physics steps per Safety-Gymnasium environment step
+/// (Safety-Gymnasium's `frameskip_binom_n = 10`).
+pub const PHYSICS_STEPS_PER_SG_STEP: usize = 10;
+
+/// MuJoCo physics steps per agent action by default:
+/// [`SG_STEPS_PER_ACTION`] x [`PHYSICS_STEPS_PER_SG_STEP`] = 50.
+pub const PHYSICS_STEPS_PER_ACTION: usize = SG_STEPS_PER_ACTION * PHYSICS_STEPS_PER_SG_STEP;
+
+/// The default before 2026-11-30 (5 physics steps per action, a misreading
+/// of the paper's 5 environment steps). Checkpoints and datasets that do not
+/// record their macro action were made under it; loaders refuse them.
+pub const OLD_PHYSICS_STEPS_PER_ACTION: usize = 5;
 
 /// The robot of a SafeDarkMujoco task.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash)]
@@ -131,8 +161,11 @@ pub struct NavConfig {
     pub goal_radius: f64,
     /// Cost is paid within this xy distance of a hazard's centre.
     pub hazard_radius: f64,
-    /// Physics steps per agent step.
-    pub frame_skip: usize,
+    /// MuJoCo physics steps per agent action (the macro action), default
+    /// [`PHYSICS_STEPS_PER_ACTION`] = [`SG_STEPS_PER_ACTION`] (5
+    /// Safety-Gymnasium steps) x [`PHYSICS_STEPS_PER_SG_STEP`] (10 physics
+    /// steps each) = 50.
+    pub physics_steps_per_action: usize,
     /// Time limit in agent steps.
     pub max_episode_steps: usize,
 }
@@ -147,7 +180,7 @@ impl NavConfig {
             extent: 1.5,
             goal_radius: 0.3,
             hazard_radius: 0.2,
-            frame_skip: 5,
+            physics_steps_per_action: PHYSICS_STEPS_PER_ACTION,
             max_episode_steps: 75,
         }
     }
@@ -199,8 +232,11 @@ impl NavConfig {
                 return bad(format!("{name} must be positive and finite, got {v}"));
             }
         }
-        if self.frame_skip == 0 || self.max_episode_steps == 0 {
-            return bad("frame_skip and max_episode_steps must be at least 1".into());
+        if self.physics_steps_per_action == 0 || self.max_episode_steps == 0 {
+            return bad(format!(
+                "physics_steps_per_action ({}) and max_episode_steps ({}) must be at least 1",
+                self.physics_steps_per_action, self.max_episode_steps
+            ));
         }
         self.spawn_config().validate()
     }
@@ -372,6 +408,35 @@ impl SafeDarkMujoco {
         r[3].atan2(r[0])
     }
 
+    /// The robot's heading: the direction it drives when pushed forward
+    /// (Point's body +x axis, Car's chassis +y axis), as an angle about z.
+    pub fn robot_heading(&self) -> f64 {
+        match self.config.robot {
+            Robot::Point => self.robot_yaw(),
+            Robot::Car => self.robot_yaw() + std::f64::consts::FRAC_PI_2,
+        }
+    }
+
+    /// A scripted controller that **knows** the goal (the agent never does):
+    /// turn towards the goal, drive forward when roughly facing it. Used to
+    /// prove that every goal cell is reachable within the time limit
+    /// (`tests/tests/env_reach.rs`, `examples/reach.rs`); not a baseline.
+    pub fn goal_seeking_action(&self) -> [f32; 2] {
+        let [x, y] = self.robot_xy();
+        let [gx, gy] = self.goal_xy;
+        let err = wrap_angle((gy - y).atan2(gx - x) - self.robot_heading());
+        let turn = (3.0 * err).clamp(-1.0, 1.0) as f32;
+        let forward = if err.abs() < 0.5 { 1.0 } else { 0.0 };
+        match self.config.robot {
+            Robot::Point => [forward, turn],
+            // Differential drive: left wheel (x = -0.1) slower to turn left.
+            Robot::Car => [
+                (forward - turn).clamp(-1.0, 1.0),
+                (forward + turn).clamp(-1.0, 1.0),
+            ],
+        }
+    }
+
     /// The body-to-world rotation, row-major.
     fn rotation(&self) -> [f64; 9] {
         let q = self.data.qpos();
@@ -434,6 +499,16 @@ impl SafeDarkMujoco {
     fn unstable(&mut self, what: String) -> EnvError {
         self.done = true;
         EnvError::Unstable(what)
+    }
+}
+
+/// `a` wrapped to [-pi, pi].
+fn wrap_angle(a: f64) -> f64 {
+    let a = a.rem_euclid(std::f64::consts::TAU);
+    if a > std::f64::consts::PI {
+        a - std::f64::consts::TAU
+    } else {
+        a
     }
 }
 
@@ -562,7 +637,7 @@ impl CmdpEnv for SafeDarkMujoco {
         ctrl[1] = f64::from(a[1].clamp(-1.0, 1.0));
 
         let mut hit_hazard = false;
-        for _ in 0..self.config.frame_skip {
+        for _ in 0..self.config.physics_steps_per_action {
             let warnings = match self.data.step(&self.model) {
                 Ok(w) => w,
                 Err(e) => {
@@ -595,6 +670,10 @@ impl CmdpEnv for SafeDarkMujoco {
 
     fn elapsed_steps(&self) -> usize {
         self.elapsed
+    }
+
+    fn physics_steps_per_action(&self) -> Option<usize> {
+        Some(self.config.physics_steps_per_action)
     }
 }
 

@@ -5,9 +5,16 @@
 //! `n_threads`; with one thread it steps inline). Observations land in one
 //! contiguous buffer, `N x obs_dim`, row `i` for environment `i`.
 //!
-//! Threads pay off when one step of one environment is much dearer than a
-//! thread hand-off (a few microseconds): SafeDarkMujoco (10-60 us per agent
-//! step) yes; SafeDarkRoom (about 15 ns per step) no: step it on 1 thread.
+//! Threads pay off only when a batch step is much dearer than handing work to
+//! another thread (a few microseconds on a quiet machine, far more when the
+//! other core is busy): SafeDarkMujoco (0.1-0.6 ms per agent step with the
+//! 50-physics-step macro action) yes; SafeDarkRoom (about 15 ns per step) no.
+//! So `VecEnv` decides per step, from measured cost: every chunk times its own
+//! work, and the batch goes to the pool only while the smoothed serial cost of
+//! a batch is at least [`PARALLEL_MIN_BATCH`]; cheaper batches run inline on
+//! the calling thread, so a `VecEnv` of cheap environments never loses to one
+//! thread (64 SafeDarkRoom environments on 2 threads ran at 0.07x of one
+//! thread before this rule).
 //!
 //! Determinism: environments share no state and each chunk is a fixed range of
 //! them, so the results are bitwise the same for every thread count. With
@@ -16,11 +23,20 @@
 //! kept in [`VecEnv::final_observations`] (Gymnasium's `final_observation`), and
 //! the returned outcome still reports the step that ended the episode.
 
+use std::time::{Duration, Instant};
+
 use rayon::prelude::*;
 
 use crate::EnvError;
 use crate::env::{Action, CmdpEnv, Space, StepOutcome};
 use crate::spawn::Task;
+
+/// Smallest serial cost of one batch step (all environments, one after the
+/// other) for which the batch is stepped on the thread pool. Ten times a
+/// thread hand-off on a quiet machine: a DarkRoom batch (1 us for 64
+/// environments) stays inline, a SafeDarkMujoco batch (over 100 us for even a
+/// single environment) goes parallel.
+pub const PARALLEL_MIN_BATCH: Duration = Duration::from_micros(50);
 
 /// Actions for all environments at once.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -60,9 +76,12 @@ pub struct VecEnv {
     obs: Vec<f32>,
     final_obs: Vec<f32>,
     outcomes: Vec<StepOutcome>,
-    /// `None` means step inline on the calling thread.
+    /// `None` means always step inline on the calling thread.
     pool: Option<rayon::ThreadPool>,
     chunk: usize,
+    /// Smoothed serial cost of one batch step (sum of the chunks' times), in
+    /// seconds; `None` before the first step.
+    batch_cost: Option<f64>,
 }
 
 impl VecEnv {
@@ -127,6 +146,7 @@ impl VecEnv {
             outcomes: vec![StepOutcome::default(); n],
             pool,
             chunk: n.div_ceil(threads),
+            batch_cost: None,
         })
     }
 
@@ -174,6 +194,17 @@ impl VecEnv {
     /// ended on the latest step (rows of the others are stale).
     pub fn final_observations(&self) -> &[f32] {
         &self.final_obs
+    }
+
+    /// Threads the next [`VecEnv::step`] will use: 1 until a step has shown
+    /// that a batch costs at least [`PARALLEL_MIN_BATCH`], then the pool's.
+    pub fn threads_in_use(&self) -> usize {
+        match (&self.pool, self.batch_cost) {
+            (Some(pool), Some(c)) if c >= PARALLEL_MIN_BATCH.as_secs_f64() => {
+                pool.current_num_threads()
+            }
+            _ => 1,
+        }
     }
 
     /// Outcomes of the latest step.
@@ -241,10 +272,13 @@ impl VecEnv {
                 }));
             }
         }
-        let (d, chunk, act_dim, auto_reset) =
-            (self.obs_dim, self.chunk, self.act_dim, self.auto_reset);
-        // One job per chunk of `chunk` environments: a fixed partition, so the
-        // work done for each environment never depends on the thread count.
+        let (d, act_dim, auto_reset) = (self.obs_dim, self.act_dim, self.auto_reset);
+        let parallel = self.threads_in_use() > 1;
+        // In parallel, one job per chunk of `self.chunk` environments; inline,
+        // one job for all, so a VecEnv that stays inline costs what one
+        // thread does. Each environment's work never depends on the
+        // partition, so the results are the same either way.
+        let chunk = if parallel { self.chunk } else { n };
         let jobs = self
             .slots
             .chunks_mut(chunk)
@@ -259,17 +293,27 @@ impl VecEnv {
                 final_obs,
                 outcomes,
             });
-        let run = |c: Chunk<'_>| c.step(actions, act_dim, d, auto_reset);
-        let result: Result<(), EnvError> = match &self.pool {
-            None => jobs.map(run).try_for_each(|r| r),
-            Some(pool) => pool.install(|| {
-                let results: Vec<Result<(), EnvError>> =
-                    jobs.collect::<Vec<_>>().into_par_iter().map(run).collect();
-                // The first error in environment order, whatever thread hit it.
-                results.into_iter().collect()
-            }),
+        // Each chunk reports its result and how long its work took.
+        let run = |c: Chunk<'_>| {
+            let t = Instant::now();
+            let r = c.step(actions, act_dim, d, auto_reset);
+            (r, t.elapsed().as_secs_f64())
         };
-        result?;
+        let results: Vec<(Result<(), EnvError>, f64)> = match &self.pool {
+            Some(pool) if parallel => {
+                pool.install(|| jobs.collect::<Vec<_>>().into_par_iter().map(run).collect())
+            }
+            _ => jobs.map(run).collect(),
+        };
+        let serial: f64 = results.iter().map(|r| r.1).sum();
+        // Smoothed, so one slow step (a preempted thread) does not flip the
+        // choice; the first measurement is taken as it is.
+        self.batch_cost = Some(match self.batch_cost {
+            None => serial,
+            Some(c) => 0.8 * c + 0.2 * serial,
+        });
+        // The first error in environment order, whatever thread hit it.
+        results.into_iter().try_for_each(|r| r.0)?;
         Ok(&self.outcomes)
     }
 }
@@ -349,6 +393,75 @@ mod tests {
     fn thread_count_does_not_change_results() {
         assert_eq!(rollout(1), rollout(2));
         assert_eq!(rollout(1), rollout(3));
+    }
+
+    #[test]
+    fn cheap_batches_stay_on_the_calling_thread() {
+        let cfg = DarkRoomConfig::default();
+        let envs: Vec<Box<dyn CmdpEnv>> = (0..64)
+            .map(|_| Box::new(SafeDarkRoom::new(cfg.clone()).unwrap()) as Box<dyn CmdpEnv>)
+            .collect();
+        let mut v = VecEnv::new(envs, 2, true).unwrap();
+        v.reset(&[0; 64]).unwrap();
+        assert_eq!(v.threads_in_use(), 1, "no cost measured yet");
+        for t in 0..100usize {
+            let a: Vec<usize> = (0..64).map(|i| (t + i) % 5).collect();
+            v.step(VecAction::Discrete(&a)).unwrap();
+        }
+        // 64 DarkRoom steps take about a microsecond: far below a hand-off.
+        assert_eq!(v.threads_in_use(), 1);
+    }
+
+    /// An environment whose every step takes `cost` of wall time.
+    struct Slow {
+        inner: SafeDarkRoom,
+        cost: Duration,
+    }
+
+    impl CmdpEnv for Slow {
+        fn observation_space(&self) -> Space {
+            self.inner.observation_space()
+        }
+        fn action_space(&self) -> Space {
+            self.inner.action_space()
+        }
+        fn max_episode_steps(&self) -> usize {
+            self.inner.max_episode_steps()
+        }
+        fn set_task(&mut self, task: &Task) -> Result<(), EnvError> {
+            self.inner.set_task(task)
+        }
+        fn task(&self) -> &Task {
+            self.inner.task()
+        }
+        fn reset(&mut self, seed: u64, obs: &mut [f32]) -> Result<(), EnvError> {
+            self.inner.reset(seed, obs)
+        }
+        fn step(&mut self, action: Action<'_>, obs: &mut [f32]) -> Result<StepOutcome, EnvError> {
+            std::thread::sleep(self.cost);
+            self.inner.step(action, obs)
+        }
+        fn elapsed_steps(&self) -> usize {
+            self.inner.elapsed_steps()
+        }
+    }
+
+    #[test]
+    fn dear_batches_go_to_the_pool() {
+        let envs: Vec<Box<dyn CmdpEnv>> = (0..4)
+            .map(|_| {
+                Box::new(Slow {
+                    inner: SafeDarkRoom::new(DarkRoomConfig::default()).unwrap(),
+                    cost: Duration::from_micros(200),
+                }) as Box<dyn CmdpEnv>
+            })
+            .collect();
+        let mut v = VecEnv::new(envs, 2, true).unwrap();
+        v.reset(&[0; 4]).unwrap();
+        v.step(VecAction::Discrete(&[1; 4])).unwrap();
+        assert_eq!(v.threads_in_use(), 2);
+        v.step(VecAction::Discrete(&[1; 4])).unwrap();
+        assert_eq!(v.threads_in_use(), 2);
     }
 
     #[test]

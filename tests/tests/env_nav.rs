@@ -110,13 +110,14 @@ fn car_wheels_forward_drive_forward_and_opposite_wheels_turn() {
     let mut env = env_with(Robot::Car, cell(0, 0), cell(4, 4), 200);
     let mut obs = obs_buf(&env);
     env.reset(0, &mut obs).unwrap();
-    for _ in 0..40 {
+    // 10 agent steps: 2 s of simulated time.
+    for _ in 0..10 {
         env.step(Action::Continuous(&[1.0, 1.0]), &mut obs).unwrap();
     }
     // Forward is the chassis +y axis, which is world +y at yaw 0.
     let p = env.robot_xy();
     assert!(
-        p[1] > 0.2 && p[0].abs() < 0.1 * p[1],
+        p[1] > 0.5 && p[0].abs() < 0.1 * p[1],
         "both wheels forward ended at {p:?}"
     );
 

@@ -75,6 +75,11 @@ struct DatasetArgs {
     /// Which learner makes the histories.
     #[arg(long, default_value = "ppo-lagrangian", value_parser = ["ppo-lagrangian", "noisy-optimal"])]
     source: String,
+    /// Point and Car: MuJoCo physics steps per agent action, the macro action
+    /// (default 50 = 5 Safety-Gymnasium steps x 10 physics steps each);
+    /// recorded in the file.
+    #[arg(long, value_name = "N")]
+    physics_steps_per_action: Option<usize>,
 }
 
 /// A seed: a whole number from 0 to 2^64 - 1 (clap would call `-1` an
@@ -105,13 +110,16 @@ fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
         seed: args.seed,
         threads,
         source,
+        physics_steps_per_action: args.physics_steps_per_action,
     })?;
     println!(
-        "wrote {}: {} histories, {} steps, {} episodes, {:.1} MB in {:.0} s ({:.0} steps/s); \
+        "wrote {}: {} histories, {} steps{}, {} episodes, {:.1} MB in {:.0} s ({:.0} steps/s); \
          first 10% of episodes: return {:.3} cost {:.3}; last 10%: return {:.3} cost {:.3}",
         r.out.display(),
         r.histories,
         r.steps,
+        r.physics_steps_per_action
+            .map_or(String::new(), |n| format!(" of {n} physics steps each")),
         r.episodes,
         r.bytes as f64 / 1e6,
         r.seconds,
@@ -203,12 +211,55 @@ fn pretrain(args: PretrainArgs) -> anyhow::Result<()> {
         &args.out,
     )?;
     println!(
-        "run {} finished: {} updates, {} env steps, lambda {:.4}; last checkpoint {}",
+        "run {} finished: {} updates, {} env steps, lambda {:.4}",
         report.run_dir.display(),
         report.updates,
         report.env_steps,
         report.lambda,
-        report.last_checkpoint.display()
+    );
+    print_learning_summary(&args.env, &report)?;
+    Ok(())
+}
+
+/// Whether the run learned, in numbers: episodic return and cost early and
+/// late in the run against a random policy on the same task distribution,
+/// then the checkpoint and the command that evaluates it.
+fn print_learning_summary(env: &str, report: &icrl::eppo::PretrainReport) -> anyhow::Result<()> {
+    use icrl::run_summary::{eval_command, metrics_trend, random_policy};
+    let env: safety_envs::EnvName = env.parse()?;
+    let config = std::fs::read_to_string(report.run_dir.join("config.toml"))?;
+    let cfg: icrl::eppo::EppoConfig = toml::from_str(&config)?;
+    let options = safety_envs::EnvOptions {
+        max_episode_steps: Some(cfg.max_episode_steps),
+        physics_steps_per_action: cfg.physics_steps_per_action,
+    };
+    let random = random_policy(env, &options, 200, cfg.seed)?;
+    match metrics_trend(&report.run_dir.join("metrics.jsonl"), 0.1) {
+        Some(t) => println!(
+            "learning ({} collection rounds): episodic return {:.3} in the first 10% -> {:.3} in the last 10% \
+             (random policy: {:.3}); episodic cost {:.2} -> {:.2} (random policy: {:.2}){}",
+            t.rounds,
+            t.first.episodic_return,
+            t.last.episodic_return,
+            random.episodic_return,
+            t.first.episodic_cost,
+            t.last.episodic_cost,
+            random.episodic_cost,
+            if t.last.episodic_return > random.episodic_return {
+                ": it learns, its return is above the random policy's"
+            } else {
+                ": its return is not above the random policy's yet"
+            }
+        ),
+        None => println!(
+            "learning: no episode finished during the run (random policy: return {:.3}, cost {:.2})",
+            random.episodic_return, random.episodic_cost
+        ),
+    }
+    println!("checkpoint: {}", report.last_checkpoint.display());
+    println!(
+        "evaluate it with:\n  {}",
+        eval_command(env, &report.last_checkpoint)
     );
     Ok(())
 }

@@ -1,0 +1,153 @@
+//! What a finished pretraining run tells its user: whether it learned, in
+//! numbers a reader can judge (its episodic return early and late in the run
+//! against a uniformly random policy's on the same task distribution), and the
+//! exact command that evaluates its checkpoint.
+
+use std::path::Path;
+
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+use safety_envs::{
+    Action, EnvError, EnvName, EnvOptions, Orientation, Space, make_env, sample_task, spawn_config,
+};
+
+/// Mean episode return and cost.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct ReturnCost {
+    pub episodic_return: f64,
+    pub episodic_cost: f64,
+}
+
+/// The run's learning curve, summarised: the mean of `episodic_return` and
+/// `episodic_cost` over the first and over the last `fraction` of the
+/// collection rounds in `metrics.jsonl` (at least one round each).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Trend {
+    pub first: ReturnCost,
+    pub last: ReturnCost,
+    /// Rounds with episodes that the means cover.
+    pub rounds: usize,
+}
+
+/// Reads `metrics.jsonl` (records without an `episodic_return` number are
+/// skipped); `None` when no round finished an episode.
+pub fn metrics_trend(metrics: &Path, fraction: f64) -> Option<Trend> {
+    let text = std::fs::read_to_string(metrics).ok()?;
+    let rows: Vec<ReturnCost> = text
+        .lines()
+        .filter_map(|l| serde_json::from_str::<serde_json::Value>(l).ok())
+        .filter_map(|v| {
+            Some(ReturnCost {
+                episodic_return: v.get("episodic_return")?.as_f64()?,
+                episodic_cost: v.get("episodic_cost")?.as_f64()?,
+            })
+        })
+        .collect();
+    if rows.is_empty() {
+        return None;
+    }
+    let k = ((rows.len() as f64 * fraction).ceil() as usize).clamp(1, rows.len());
+    let mean = |part: &[ReturnCost]| ReturnCost {
+        episodic_return: part.iter().map(|r| r.episodic_return).sum::<f64>() / part.len() as f64,
+        episodic_cost: part.iter().map(|r| r.episodic_cost).sum::<f64>() / part.len() as f64,
+    };
+    Some(Trend {
+        first: mean(&rows[..k]),
+        last: mean(&rows[rows.len() - k..]),
+        rounds: rows.len(),
+    })
+}
+
+/// A uniformly random policy's mean episode return and cost on `episodes`
+/// centre-oriented (pretraining) tasks of `env`, one episode per task.
+pub fn random_policy(
+    env: EnvName,
+    options: &EnvOptions,
+    episodes: usize,
+    seed: u64,
+) -> Result<ReturnCost, EnvError> {
+    let mut e = make_env(env, options)?;
+    let spawn = spawn_config(env);
+    let mut obs = vec![0.0; e.observation_space().flat_dim()];
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    let space = e.action_space();
+    let mut action = vec![0.0f32; space.flat_dim()];
+    let (mut ret, mut cost) = (0.0, 0.0);
+    for i in 0..episodes {
+        let task = sample_task(&spawn, Orientation::Centre, seed.wrapping_add(i as u64))?;
+        e.set_task(&task)?;
+        e.reset(i as u64, &mut obs)?;
+        loop {
+            let out = match &space {
+                Space::Discrete { n } => {
+                    e.step(Action::Discrete(rng.gen_range(0..*n)), &mut obs)?
+                }
+                Space::Box { low, high } => {
+                    for (a, (&l, &h)) in action.iter_mut().zip(low.iter().zip(high)) {
+                        *a = rng.gen_range(l..=h);
+                    }
+                    e.step(Action::Continuous(&action), &mut obs)?
+                }
+            };
+            ret += f64::from(out.reward);
+            cost += f64::from(out.cost);
+            if out.done() {
+                break;
+            }
+        }
+    }
+    let n = episodes.max(1) as f64;
+    Ok(ReturnCost {
+        episodic_return: ret / n,
+        episodic_cost: cost / n,
+    })
+}
+
+/// The command that evaluates `checkpoint` on `env` (held-out edge tasks,
+/// Figure 1, with a random policy for scale).
+pub fn eval_command(env: EnvName, checkpoint: &Path) -> String {
+    format!(
+        "cargo xtask eval --checkpoint {} --env {env} --random --out results/eval_{env}",
+        checkpoint.display()
+    )
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn trend_averages_first_and_last_rounds_and_skips_rounds_without_episodes() {
+        let dir = std::env::temp_dir().join(format!("icrl-run-summary-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("metrics.jsonl");
+        let mut text = String::from("{\"env_steps\": 1, \"episodic_return\": null}\n");
+        for i in 0..10 {
+            text += &format!(
+                "{{\"env_steps\": {i}, \"episodic_return\": {}, \"episodic_cost\": {}}}\n",
+                i as f64 / 10.0,
+                10 - i
+            );
+        }
+        std::fs::write(&path, text).unwrap();
+        let t = metrics_trend(&path, 0.2).unwrap();
+        assert_eq!(t.rounds, 10);
+        assert!((t.first.episodic_return - 0.05).abs() < 1e-12, "{t:?}");
+        assert!((t.last.episodic_return - 0.85).abs() < 1e-12, "{t:?}");
+        assert!((t.first.episodic_cost - 9.5).abs() < 1e-12, "{t:?}");
+        assert!(metrics_trend(&dir.join("none.jsonl"), 0.1).is_none());
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn random_policy_pays_cost_and_rarely_reaches_the_goal_on_point() {
+        let r = random_policy(EnvName::Point, &EnvOptions::default(), 20, 3).unwrap();
+        assert!(r.episodic_cost > 1.0, "{r:?}");
+        assert!(r.episodic_return < 0.5, "{r:?}");
+        let cmd = eval_command(EnvName::Car, Path::new("runs/x/checkpoints/step_9"));
+        assert_eq!(
+            cmd,
+            "cargo xtask eval --checkpoint runs/x/checkpoints/step_9 --env car --random --out results/eval_car"
+        );
+    }
+}
