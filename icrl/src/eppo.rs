@@ -1597,11 +1597,19 @@ impl Learner {
         learner.updates = state.updates;
         learner.env_steps = state.env_steps;
         // Checkpoints from before tasks were recorded restart the count.
-        learner.tasks_drawn = state.tasks_drawn.unwrap_or(
-            state
-                .pretrain_tasks
-                .map_or(0, |tasks| tasks.end - tasks.start),
-        );
+        let recorded = match &state.pretrain_tasks {
+            None => 0,
+            Some(tasks) => tasks.end.checked_sub(tasks.start).ok_or_else(|| {
+                bad(
+                    "state.json",
+                    format!(
+                        "pretrain_tasks end {} is before start {}",
+                        tasks.end, tasks.start
+                    ),
+                )
+            })?,
+        };
+        learner.tasks_drawn = state.tasks_drawn.unwrap_or(recorded);
         let mut rng = ChaCha8Rng::from_seed(state.rng_seed);
         rng.set_stream(state.rng_stream);
         rng.set_word_pos(
