@@ -797,13 +797,8 @@ fn run_batch(
                 && state[i].done < k_n
             {
                 let ep = r.episodes.last_mut().expect("one episode is always open");
-                let last_obs = if o.done() {
-                    venv.final_observations()
-                } else {
-                    venv.observations()
-                };
                 ep.observations
-                    .push(last_obs[i * obs_dim..(i + 1) * obs_dim].to_vec());
+                    .push(arrived[i * obs_dim..(i + 1) * obs_dim].to_vec());
                 ep.actions.push(match &actions {
                     Actions::Discrete(a) => vec![a[i] as f32],
                     Actions::Continuous(_) => continuous[i * act_dim..(i + 1) * act_dim].to_vec(),
