@@ -70,8 +70,10 @@ pub fn preset_table(method: &str, env: &str, preset: &str) -> Result<toml::Table
 }
 
 /// Applies `key=value` overrides; the value is read as TOML (`3`, `0.5`,
-/// `true`, `"cuda"`), falling back to a bare string (`device=cuda`). Only
-/// existing fields can be set, so a typo is an error, not a silent no-op.
+/// `true`, `"cuda"`), falling back to a bare string (`device=cuda`). A field
+/// the table lacks is added (optional fields, and fields newer than a resumed
+/// run's config); the configs deny unknown fields, so a typo still fails, when
+/// the table is resolved, with the list of valid names.
 pub fn apply_overrides(table: &mut toml::Table, sets: &[String]) -> Result<(), PresetError> {
     for set in sets {
         let (key, raw) = set
@@ -91,14 +93,14 @@ pub fn apply_overrides(table: &mut toml::Table, sets: &[String]) -> Result<(), P
                 fields: fields.clone(),
             };
             if i + 1 == parts.len() {
-                let slot = node.get_mut(*part).ok_or_else(no_field)?;
                 // An integer given for a float field stays a float.
-                *slot = match (&*slot, value.clone()) {
-                    (toml::Value::Float(_), toml::Value::Integer(n)) => {
+                let new = match (node.get(*part), value.clone()) {
+                    (Some(toml::Value::Float(_)), toml::Value::Integer(n)) => {
                         toml::Value::Float(n as f64)
                     }
                     (_, v) => v,
                 };
+                node.insert(part.to_string(), new);
             } else {
                 node = node
                     .get_mut(*part)
@@ -155,6 +157,14 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(err.contains("modle.n_layers"), "{err}");
+        // A field absent from the table is added; a misspelt one is refused
+        // when resolved, naming the valid fields.
+        let mut t = preset_table("eppo", "point", "quick").unwrap();
+        apply_overrides(&mut t, &["task_pool=1".into()]).unwrap();
+        assert_eq!(resolve::<EppoConfig>("x", t.clone()).unwrap().task_pool, 1);
+        apply_overrides(&mut t, &["task_pol=1".into()]).unwrap();
+        let err = resolve::<EppoConfig>("x", t).unwrap_err().to_string();
+        assert!(err.contains("task_pol") && err.contains("task_pool"), "{err}");
         assert!(apply_overrides(&mut t, &["lr".into()]).is_err());
         assert!(
             preset_table("eppo", "darkroom", "huge")
