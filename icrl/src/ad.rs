@@ -5,35 +5,43 @@
 //! the model, [`train`], then the frozen [`AdAgent`].
 //!
 //! # Tokens: one per time step
-//! Each time step `t` of a learning history becomes one token, the
-//! concatenation of
-//!
-//! | part | width | value |
-//! |---|---|---|
-//! | observation `s_t` | obs_dim | standardised with the dataset's mean and std |
-//! | previous action `a_{t-1}` | action_dim | one-hot for discrete actions; zeros at the history's first step |
-//! | previous reward, cost `r_t, c_t` | 2 | received for `a_{t-1}` (zeros at the first step) |
-//! | return-to-go `G_t` | 1 | reward still to come in this episode, `/ rtg_scale` |
-//! | cost-to-go `G_c,t` | 1 | cost still to come in this episode, `/ ctg_scale` |
-//! | episode start | 1 | 1 at the first step of an episode |
-//!
-//! mapped to the model width by a two-layer MLP, through the shared causal
-//! transformer ([`crate::model`]), and a linear head predicts `a_t` from the
-//! token of step `t`: logits with cross-entropy for discrete actions (Eq. 16),
-//! the mean with an L2 loss for continuous ones (Eq. 17).
+//! Each time step `t` becomes one token of the layout both learners share
+//! ([`crate::tokens`]): the observation `s_t` and the observation `a_{t-1}`
+//! arrived at (standardised with the dataset's mean and std), `a_{t-1}`
+//! (one-hot for discrete actions), `r_t`, `c_t`, the return-to-go `G_t /
+//! rtg_scale`, the cost-to-go `G_c,t / ctg_scale` and the episode-start
+//! flag; mapped to the model width by a two-layer MLP, through the shared
+//! causal transformer ([`crate::model`]), and a linear head predicts `a_t`
+//! from the token of step `t`: logits with cross-entropy for discrete
+//! actions (Eq. 16), the mean with an L2 loss for continuous ones (Eq. 17).
 //!
 //! Why one token per step rather than interleaved (RTG, CTG, s, a) tokens as in
 //! the constrained decision transformer: the context holds three to four times
-//! more steps for the same sequence length (Table 2's 100 positions cover about
-//! three SafeDarkRoom episodes instead of one), acting is one forward step per
+//! more steps for the same sequence length, acting is one forward step per
 //! environment step through [`crate::agent::InContextAgent`], and EPPO encodes
-//! its steps the same way (SPEC section 3), so the two routes differ only in
-//! their learning rule.
+//! its steps the same way, so the two routes differ only in their learning
+//! rule and their conditioning.
 //!
+//! # Windows that show learning
+//! A training window is a run of whole episodes of one history, `episode
+//! stride` apart (drawn per window from 1 to `episode_stride_max`), starting
+//! at a random step of its first episode and cut at `model.max_len` steps.
+//! With a stride above 1 a window spans a longer stretch of the learning run
+//! than its length in steps, so the improvement the source learner made
+//! between its episodes is visible inside one window, and the model learns
+//! to improve faster than the learner did (Laskin et al.'s subsampled
+//! histories). The token after a skipped stretch says what the previous
+//! episode *in the window* received and where it ended, exactly as at
+//! evaluation, where the context is the agent's own episodes.
+//!
+//! # Conditioning
 //! RTG and CTG labels (SPEC section 4): inside each episode, `G_t = sum_{j>=t}
 //! r_{j+1}` and `G_c,t = sum_{j>=t} c_{j+1}`, the reward and cost received
-//! from acting at `t` to the episode's end. At test time both start at the
-//! targets and decrease by what is received.
+//! from acting at `t` to the episode's end, never negative. At test time both
+//! start at the targets and decrease by what is received, **floored at 0**:
+//! after an episode has spent its budget the token says "no more cost" (the
+//! condition the model was trained on) rather than a negative value no
+//! training label ever had.
 //!
 //! # Checkpoints
 //! A run folder `{env}__ad__{seed}__{time}` holds `config.toml` (the resolved
@@ -66,6 +74,7 @@ use crate::histories::{History, HistoryError, HistoryFile};
 use crate::model::{self, KvCache, ModelError, Transformer};
 use crate::optim::{Adam, AdamConfig};
 use crate::task_seeds::PretrainTasks;
+use crate::tokens::{self, StepToken};
 
 /// Everything supervised pretraining can fail with.
 #[derive(Debug, Error)]
@@ -135,6 +144,10 @@ pub struct AdConfig {
     pub ctg_scale: f32,
     /// Fraction of the tasks whose histories are held out for a validation loss.
     pub val_fraction: f64,
+    /// A window takes every s-th episode of a history, s drawn per window
+    /// from 1 to this (1: contiguous windows).
+    #[serde(default = "default_episode_stride_max")]
+    pub episode_stride_max: usize,
     /// Log (and validate) every this many updates.
     pub log_every: usize,
     /// Save a checkpoint every this many updates (and at the end).
@@ -148,6 +161,10 @@ pub struct AdConfig {
 
 fn default_keep_checkpoints() -> usize {
     3
+}
+
+fn default_episode_stride_max() -> usize {
+    1
 }
 
 /// The presets shipped in `icrl/presets/ad-{env}-{preset}.toml`: `table2` is
@@ -225,6 +242,7 @@ impl AdConfig {
             ("updates", self.updates as i128),
             ("log_every", self.log_every as i128),
             ("checkpoint_every", self.checkpoint_every as i128),
+            ("episode_stride_max", self.episode_stride_max as i128),
         ])
         .map_err(AdError::Config)?;
         check_numbers(&[
@@ -283,7 +301,14 @@ pub struct AdSpec {
     /// which [`AdAgent::load`] refuses.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub physics_steps_per_action: Option<usize>,
+    /// The token layout ([`TOKEN_LAYOUT`]); absent in runs from before the
+    /// arrived observation, which [`AdAgent::load`] refuses.
+    #[serde(default)]
+    pub token: Option<String>,
 }
+
+/// The token layout this code writes, recorded in every spec.
+pub const TOKEN_LAYOUT: &str = "obs,arrived_obs,prev_action,reward,cost,rtg,ctg,start";
 
 impl AdSpec {
     /// Checks sizes and normalisation read from a file: one mean and one
@@ -311,9 +336,19 @@ impl AdSpec {
         Ok(())
     }
 
-    /// Token width: obs, previous action, reward, cost, RTG, CTG, episode start.
+    /// Token width: obs, arrived obs, previous action, reward, cost, RTG,
+    /// CTG, episode start.
     pub fn token_dim(&self) -> usize {
-        self.obs_dim + self.action_dim + 5
+        tokens::token_dim(self.obs_dim, self.action_dim, 2)
+    }
+
+    /// Appends an observation standardised with the dataset's mean and std.
+    fn normalise_obs(&self, obs: &[f32], out: &mut Vec<f32>) {
+        out.extend(
+            obs.iter()
+                .zip(self.obs_mean.iter().zip(&self.obs_std))
+                .map(|(x, (m, s))| (x - m) / s),
+        );
     }
 }
 
@@ -321,30 +356,23 @@ impl AdSpec {
 // Tokens and the data loader
 // ---------------------------------------------------------------------------
 
-/// Writes one token into `out` (length `spec.token_dim()`).
+/// Appends one token: the shared layout ([`crate::tokens`]) with RTG and CTG
+/// scaled, the reward as received.
 #[allow(clippy::too_many_arguments)]
-fn write_token(
+fn push_token(
     spec: &AdSpec,
     cfg: &AdConfig,
-    obs: &[f32],
-    prev_action: &[f32],
-    reward: f32,
-    cost: f32,
+    step: StepToken<'_>,
     rtg: f32,
     ctg: f32,
-    episode_start: bool,
-    out: &mut [f32],
+    out: &mut Vec<f32>,
 ) {
-    let (o, a) = (spec.obs_dim, spec.action_dim);
-    for i in 0..o {
-        out[i] = (obs[i] - spec.obs_mean[i]) / spec.obs_std[i];
-    }
-    out[o..o + a].copy_from_slice(prev_action);
-    out[o + a] = reward;
-    out[o + a + 1] = cost;
-    out[o + a + 2] = rtg / cfg.rtg_scale;
-    out[o + a + 3] = ctg / cfg.ctg_scale;
-    out[o + a + 4] = if episode_start { 1.0 } else { 0.0 };
+    let to_go = [rtg / cfg.rtg_scale, ctg / cfg.ctg_scale];
+    let step = StepToken {
+        to_go: &to_go,
+        ..step
+    };
+    tokens::push_token(&step, 1.0, |o, out| spec.normalise_obs(o, out), out);
 }
 
 /// The action of history step `t` as a token's action part (one-hot when discrete).
@@ -377,75 +405,130 @@ pub fn to_go(h: &History) -> (Vec<f32>, Vec<f32>) {
     (rtg, ctg)
 }
 
-/// Histories turned into token rows and action targets, ready for windows.
+/// One history's steps, kept apart so that a window can join episodes that
+/// were not adjacent: each token takes what the previous step *in the
+/// window* received.
+struct HistorySteps {
+    len: usize,
+    /// (T, obs_dim) observations and the observations each action arrived at.
+    obs: Vec<f32>,
+    next_obs: Vec<f32>,
+    /// (T, action width) actions as token parts (one-hot when discrete).
+    actions: Vec<f32>,
+    rewards: Vec<f32>,
+    costs: Vec<f32>,
+    rtg: Vec<f32>,
+    ctg: Vec<f32>,
+    start: Vec<bool>,
+    episodes: Vec<std::ops::Range<usize>>,
+    /// (T,) class indices (discrete targets; continuous targets are `actions`).
+    classes: Vec<i64>,
+}
+
+/// Histories ready for windows ([module docs](self): windows that show learning).
 pub struct TokenSet {
-    token_dim: usize,
-    action_dim: usize,
-    discrete: bool,
-    /// Per history: (T, token_dim) tokens.
-    tokens: Vec<Vec<f32>>,
-    /// Per history: (T,) class indices (discrete) ...
-    classes: Vec<Vec<i64>>,
-    /// ... or (T, action_dim) target actions (continuous).
-    targets: Vec<Vec<f32>>,
+    spec: AdSpec,
+    cfg: AdConfig,
+    histories: Vec<HistorySteps>,
 }
 
 impl TokenSet {
-    /// Tokenises `histories`.
+    /// Prepares `histories` for windows.
     pub fn new(spec: &AdSpec, cfg: &AdConfig, histories: &[&History]) -> Self {
-        let d = spec.token_dim();
-        let mut set = TokenSet {
-            token_dim: d,
-            action_dim: spec.action_dim,
-            discrete: spec.discrete,
-            tokens: Vec::new(),
-            classes: Vec::new(),
-            targets: Vec::new(),
-        };
-        let mut prev = vec![0.0f32; spec.action_dim];
-        for h in histories {
-            let (rtg, ctg) = to_go(h);
-            let mut rows = vec![0.0f32; h.len() * d];
-            let mut starts = vec![false; h.len()];
-            for ep in h.episodes() {
-                starts[ep.start] = true;
-            }
-            for t in 0..h.len() {
-                let (r, c) = if t == 0 {
-                    prev.fill(0.0);
-                    (0.0, 0.0)
-                } else {
-                    action_part(spec, h, t - 1, &mut prev);
-                    (h.rewards[t - 1], h.costs[t - 1])
-                };
-                write_token(
-                    spec,
-                    cfg,
-                    &h.observations[t * spec.obs_dim..(t + 1) * spec.obs_dim],
-                    &prev,
-                    r,
-                    c,
-                    rtg[t],
-                    ctg[t],
-                    starts[t],
-                    &mut rows[t * d..(t + 1) * d],
-                );
-            }
-            set.tokens.push(rows);
-            if spec.discrete {
-                set.classes
-                    .push(h.actions.iter().map(|&a| a as i64).collect());
-            } else {
-                set.targets.push(h.actions.clone());
-            }
+        let a = spec.action_dim;
+        let histories = histories
+            .iter()
+            .map(|h| {
+                let (rtg, ctg) = to_go(h);
+                let episodes = h.episodes();
+                let mut start = vec![false; h.len()];
+                for ep in &episodes {
+                    start[ep.start] = true;
+                }
+                let mut actions = vec![0.0f32; h.len() * a];
+                for t in 0..h.len() {
+                    action_part(spec, h, t, &mut actions[t * a..(t + 1) * a]);
+                }
+                HistorySteps {
+                    len: h.len(),
+                    obs: h.observations.clone(),
+                    next_obs: h.next_observations.clone(),
+                    actions,
+                    rewards: h.rewards.clone(),
+                    costs: h.costs.clone(),
+                    rtg,
+                    ctg,
+                    start,
+                    episodes,
+                    classes: if spec.discrete {
+                        h.actions.iter().map(|&x| x as i64).collect()
+                    } else {
+                        Vec::new()
+                    },
+                }
+            })
+            .collect();
+        TokenSet {
+            spec: spec.clone(),
+            cfg: cfg.clone(),
+            histories,
         }
-        set
     }
 
-    /// Samples `batch` windows of `len` steps, uniformly over all window
-    /// positions of histories at least `len` long (so every learning phase,
-    /// early and late, is drawn). Returns tokens (B, T, token_dim) and targets
-    /// (B, T) int64 or (B, T, action_dim) float.
+    /// The steps of one window of `len` steps: whole episodes `stride` apart
+    /// after a random start inside the first. Where the history ends before
+    /// the window is full the draw is repeated; after 32 misses the window is
+    /// a contiguous run from a uniform position.
+    fn window_steps(&self, h: &HistorySteps, len: usize, rng: &mut ChaCha8Rng) -> Vec<usize> {
+        for _ in 0..32 {
+            let stride = rng.gen_range(1..=self.cfg.episode_stride_max);
+            let e0 = rng.gen_range(0..h.episodes.len());
+            let first = &h.episodes[e0];
+            let mut steps: Vec<usize> = (rng.gen_range(first.clone())..first.end).collect();
+            let mut e = e0 + stride;
+            while steps.len() < len && e < h.episodes.len() {
+                steps.extend(h.episodes[e].clone());
+                e += stride;
+            }
+            if steps.len() >= len {
+                steps.truncate(len);
+                return steps;
+            }
+        }
+        let start = rng.gen_range(0..=h.len - len);
+        (start..start + len).collect()
+    }
+
+    /// Appends the tokens of `steps` of `h` to `out`.
+    fn push_window(&self, h: &HistorySteps, steps: &[usize], out: &mut Vec<f32>) {
+        let (o, a) = (self.spec.obs_dim, self.spec.action_dim);
+        let (zeros_o, zeros_a) = (vec![0.0f32; o], vec![0.0f32; a]);
+        for (i, &t) in steps.iter().enumerate() {
+            let received = match i.checked_sub(1).map(|j| steps[j]) {
+                None => (&zeros_o[..], &zeros_a[..], 0.0, 0.0),
+                Some(p) => (
+                    &h.next_obs[p * o..(p + 1) * o],
+                    &h.actions[p * a..(p + 1) * a],
+                    h.rewards[p],
+                    h.costs[p],
+                ),
+            };
+            let step = StepToken {
+                obs: &h.obs[t * o..(t + 1) * o],
+                arrived_obs: received.0,
+                prev_action: received.1,
+                reward: received.2,
+                cost: received.3,
+                to_go: &[],
+                start: h.start[t],
+            };
+            push_token(&self.spec, &self.cfg, step, h.rtg[t], h.ctg[t], out);
+        }
+    }
+
+    /// Samples `batch` windows of `len` steps from histories at least `len`
+    /// long, each history drawn in proportion to its length. Returns tokens
+    /// (B, T, token_dim) and targets (B, T) int64 or (B, T, action_dim) float.
     pub fn sample(
         &self,
         batch: i64,
@@ -454,47 +537,47 @@ impl TokenSet {
     ) -> Result<(Tensor, Tensor), AdError> {
         let l = len as usize;
         let weights: Vec<f64> = self
-            .tokens
+            .histories
             .iter()
-            .map(|t| ((t.len() / self.token_dim) + 1).saturating_sub(l) as f64)
+            .map(|h| if h.len >= l { h.len as f64 } else { 0.0 })
             .collect();
         let dist = WeightedIndex::new(&weights).map_err(|_| {
             AdError::Config(format!(
                 "no history is at least {l} steps long: lower the sequence length (model.max_len)"
             ))
         })?;
-        let d = self.token_dim;
+        let (d, a) = (self.spec.token_dim(), self.spec.action_dim);
         let mut x = Vec::with_capacity(batch as usize * l * d);
         let mut ycls = Vec::new();
         let mut yvec = Vec::new();
         for _ in 0..batch {
-            let h = dist.sample(rng);
-            let steps = self.tokens[h].len() / d;
-            let start = rng.gen_range(0..=steps - l);
-            x.extend_from_slice(&self.tokens[h][start * d..(start + l) * d]);
-            if self.discrete {
-                ycls.extend_from_slice(&self.classes[h][start..start + l]);
-            } else {
-                let a = self.action_dim;
-                yvec.extend_from_slice(&self.targets[h][start * a..(start + l) * a]);
+            let h = &self.histories[dist.sample(rng)];
+            let steps = self.window_steps(h, l, rng);
+            self.push_window(h, &steps, &mut x);
+            for &t in &steps {
+                if self.spec.discrete {
+                    ycls.push(h.classes[t]);
+                } else {
+                    yvec.extend_from_slice(&h.actions[t * a..(t + 1) * a]);
+                }
             }
         }
         let x = Tensor::from_slice(&x).view([batch, len, d as i64]);
-        let y = if self.discrete {
+        let y = if self.spec.discrete {
             Tensor::from_slice(&ycls).view([batch, len])
         } else {
-            Tensor::from_slice(&yvec).view([batch, len, self.action_dim as i64])
+            Tensor::from_slice(&yvec).view([batch, len, a as i64])
         };
         Ok((x, y))
     }
 
     /// Number of histories.
     pub fn len(&self) -> usize {
-        self.tokens.len()
+        self.histories.len()
     }
 
     pub fn is_empty(&self) -> bool {
-        self.tokens.is_empty()
+        self.histories.is_empty()
     }
 }
 
@@ -661,6 +744,7 @@ fn spec_for(data: &HistoryFile, dataset_path: &Path) -> AdSpec {
         dataset_config: info.config.clone(),
         pretrain_tasks,
         physics_steps_per_action: info.physics_steps_per_action,
+        token: Some(TOKEN_LAYOUT.into()),
     }
 }
 
@@ -1334,6 +1418,19 @@ impl AdAgent {
         let spec: AdSpec =
             serde_json::from_str(&read(p.clone())?).map_err(|e| bad(p.clone(), e.to_string()))?;
         spec.check().map_err(|e| bad(p.clone(), e))?;
+        if spec.token.as_deref() != Some(TOKEN_LAYOUT) {
+            return Err(bad(
+                p,
+                format!(
+                    "this run's tokens have the layout {:?}; this version reads {TOKEN_LAYOUT:?} \
+                     (since 2026-11-30 a token also carries the observation the previous action \
+                     arrived at): retrain it with `icrl pretrain --method ad`",
+                    spec.token
+                        .as_deref()
+                        .unwrap_or("obs,prev_action,reward,cost,rtg,ctg,start")
+                ),
+            ));
+        }
         memory_estimate(&cfg, &spec, 0)
             .check()
             .map_err(|e| bad(run_dir.join("config.toml"), e))?;
@@ -1428,14 +1525,16 @@ impl InContextAgent for AdAgent {
         let (o, a) = (self.spec.obs_dim, self.spec.action_dim);
         if b == 0
             || input.obs.len() != b * o
+            || input.arrived_obs.len() != b * o
             || input.prev_action.len() != b * a
             || input.reward.len() != b
             || input.cost.len() != b
             || input.episode_start.len() != b
         {
             return Err(AgentError::Input(format!(
-                "expected {b} trajectories with obs_dim {o} and action width {a}; got obs {}, prev_action {}, reward {}, cost {}, episode_start {}",
+                "expected {b} trajectories with obs_dim {o} and action width {a}; got obs {}, arrived_obs {}, prev_action {}, reward {}, cost {}, episode_start {}",
                 input.obs.len(),
+                input.arrived_obs.len(),
                 input.prev_action.len(),
                 input.reward.len(),
                 input.cost.len(),
@@ -1443,27 +1542,33 @@ impl InContextAgent for AdAgent {
             )));
         }
         let d = self.spec.token_dim();
-        let mut rows = vec![0.0f32; b * d];
+        let mut rows = Vec::with_capacity(b * d);
         for i in 0..b {
             // RTG/CTG restart at the targets each episode and decrease by what
-            // the previous action brought inside the episode.
+            // the previous action brought inside the episode, floored at 0 as
+            // every training label is (module docs: conditioning).
             if input.episode_start[i] {
                 (self.rtg[i], self.ctg[i]) = self.targets[i];
             } else {
-                self.rtg[i] -= input.reward[i];
-                self.ctg[i] -= input.cost[i];
+                self.rtg[i] = (self.rtg[i] - input.reward[i]).max(0.0);
+                self.ctg[i] = (self.ctg[i] - input.cost[i]).max(0.0);
             }
-            write_token(
+            let step = StepToken {
+                obs: &input.obs[i * o..(i + 1) * o],
+                arrived_obs: &input.arrived_obs[i * o..(i + 1) * o],
+                prev_action: &input.prev_action[i * a..(i + 1) * a],
+                reward: input.reward[i],
+                cost: input.cost[i],
+                to_go: &[],
+                start: input.episode_start[i],
+            };
+            push_token(
                 &self.spec,
                 &self.cfg,
-                &input.obs[i * o..(i + 1) * o],
-                &input.prev_action[i * a..(i + 1) * a],
-                input.reward[i],
-                input.cost[i],
+                step,
                 self.rtg[i],
                 self.ctg[i],
-                input.episode_start[i],
-                &mut rows[i * d..(i + 1) * d],
+                &mut rows,
             );
         }
         let device = self.vs.device();
@@ -1550,6 +1655,106 @@ mod tests {
         d.steps = 1500;
         d.cost_limits = vec![0.0];
         generate(&d, &|_| {}).unwrap().file
+    }
+
+    /// A history of `lens.len()` episodes of the given lengths: observation
+    /// (episode, step), action = episode % 5, reward 1 and cost 1 at each
+    /// episode's last step, next observation (episode, 100 + step).
+    fn history_of(lens: &[usize]) -> History {
+        let task = safety_envs::Task {
+            grid_size: 9,
+            goal: safety_envs::Cell { row: 0, col: 0 },
+            obstacles: vec![],
+        };
+        let mut h = History::new(task, 0.0);
+        for (e, &len) in lens.iter().enumerate() {
+            for t in 0..len {
+                let last = t + 1 == len;
+                h.push(
+                    &[e as f32, t as f32],
+                    &[(e % 5) as f32],
+                    if last { 1.0 } else { 0.0 },
+                    if last { 1.0 } else { 0.0 },
+                    &[e as f32, 100.0 + t as f32],
+                    last,
+                    false,
+                );
+            }
+        }
+        h
+    }
+
+    #[test]
+    fn windows_join_whole_episodes_stride_apart() {
+        let h = history_of(&[3, 4, 2, 5, 3, 4, 2, 3, 5, 4, 3, 2, 4, 3, 5, 2, 3, 4]);
+        let mut spec = spec_for(&tiny_data(), Path::new("x.h5"));
+        (spec.obs_mean, spec.obs_std) = (vec![0.0; 2], vec![1.0; 2]);
+        let mut cfg = tiny_cfg();
+        cfg.episode_stride_max = 3;
+        let set = TokenSet::new(&spec, &cfg, &[&h]);
+        let hs = &set.histories[0];
+        let episode_of = |t: usize| hs.episodes.iter().position(|r| r.contains(&t)).unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(3);
+        let mut strides_seen = [false; 4];
+        for _ in 0..200 {
+            let steps = set.window_steps(hs, 12, &mut rng);
+            assert_eq!(steps.len(), 12);
+            // Episodes in the window: whole after the first, one stride apart.
+            let eps: Vec<usize> = steps.iter().map(|&t| episode_of(t)).collect();
+            let mut distinct = eps.clone();
+            distinct.dedup();
+            let stride = distinct.get(1).map(|e| e - distinct[0]);
+            for w in distinct.windows(2) {
+                assert_eq!(Some(w[1] - w[0]), stride, "{eps:?}");
+            }
+            for (i, &t) in steps.iter().enumerate().skip(1) {
+                if eps[i] != eps[i - 1] {
+                    assert_eq!(t, hs.episodes[eps[i]].start, "{steps:?}");
+                } else {
+                    assert_eq!(t, steps[i - 1] + 1);
+                }
+            }
+            if let Some(s) = stride {
+                assert!((1..=3).contains(&s));
+                strides_seen[s] = true;
+            }
+            // Each token says what the previous step in the window received.
+            let mut x = Vec::new();
+            set.push_window(hs, &steps, &mut x);
+            let d = spec.token_dim();
+            for (i, &t) in steps.iter().enumerate() {
+                let tok = &x[i * d..(i + 1) * d];
+                assert_eq!(
+                    &tok[..2],
+                    &[eps[i] as f32, (t - hs.episodes[eps[i]].start) as f32]
+                );
+                if i == 0 {
+                    assert!(tok[2..11].iter().all(|&v| v == 0.0), "{tok:?}");
+                    continue;
+                }
+                let p = steps[i - 1];
+                let (pe, pt) = (eps[i - 1], p - hs.episodes[eps[i - 1]].start);
+                // Arrived observation, the previous action (one-hot), reward, cost.
+                assert_eq!(&tok[2..4], &[pe as f32, 100.0 + pt as f32]);
+                let mut onehot = [0.0f32; 5];
+                onehot[pe % 5] = 1.0;
+                assert_eq!(&tok[4..9], &onehot);
+                let ended = eps[i] != pe;
+                assert_eq!(tok[9], if ended { 1.0 } else { 0.0 });
+                assert_eq!(tok[10], if ended { 1.0 } else { 0.0 });
+                assert_eq!(tok[d - 1], if ended { 1.0 } else { 0.0 });
+                // CTG: the cost still to come in the episode, scaled; never negative.
+                assert_eq!(tok[d - 2], 1.0 / cfg.ctg_scale);
+            }
+        }
+        assert_eq!(strides_seen, [false, true, true, true]);
+        // Stride 1 is the contiguous history.
+        cfg.episode_stride_max = 1;
+        let set = TokenSet::new(&spec, &cfg, &[&h]);
+        for _ in 0..50 {
+            let steps = set.window_steps(&set.histories[0], 12, &mut rng);
+            assert!(steps.windows(2).all(|w| w[1] == w[0] + 1), "{steps:?}");
+        }
     }
 
     #[test]
@@ -1639,8 +1844,16 @@ mod tests {
         }
         assert!(matches!(&outs[99], Actions::Discrete(v) if v.len() == 2 && v[0] < 5));
         assert!(agent.cache.len() <= cfg.model.max_len);
-        // CTG fell by the cost received since the last episode start (t = 90).
-        assert_eq!(agent.ctg[1], -9.0);
+        // CTG fell by the cost received since the last episode start (t = 90)
+        // and stopped at 0, the lowest label training ever showed.
+        assert_eq!(agent.ctg[1], 0.0);
+        assert_eq!(agent.ctg[0], 0.0);
+        let last = agent.window.as_ref().unwrap().select(1, -1); // (B, token_dim)
+        let ctg_part: Vec<f32> = last
+            .select(1, agent.spec.token_dim() as i64 - 2)
+            .try_into()
+            .unwrap();
+        assert_eq!(ctg_part, vec![0.0, 0.0]);
         assert!(matches!(
             agent.reset(&[Conditioning::Budget { ctg: 1.0 }]),
             Err(AgentError::Input(_))
@@ -1717,6 +1930,15 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("--set updates=140"), "{e}");
+        // A run whose tokens lack the arrived observation is refused by name.
+        let spec_path = dir.join("spec.json");
+        let spec_text = fs::read_to_string(&spec_path).unwrap();
+        let mut old: serde_json::Value = serde_json::from_str(&spec_text).unwrap();
+        old.as_object_mut().unwrap().remove("token");
+        fs::write(&spec_path, old.to_string()).unwrap();
+        let e = AdAgent::load(&dir).err().unwrap().to_string();
+        assert!(e.contains("arrived") && e.contains("retrain"), "{e}");
+        fs::write(&spec_path, spec_text).unwrap();
         // Altered weights (same size) are refused on resume and on load.
         let model = step_140.join("model.safetensors");
         let mut bytes = fs::read(&model).unwrap();

@@ -80,6 +80,29 @@ pub struct DatasetConfig {
     pub ppo: PpoLagConfig,
     /// AD-eps: fraction of the history after which the noise is 0.
     pub noise_end_fraction: f64,
+    /// Keep this many episodes of each learning run, spaced evenly in the
+    /// logarithm of the episode index ([`log_spaced`]); `None` keeps all.
+    #[serde(default)]
+    pub keep_episodes: Option<usize>,
+}
+
+/// `keep` episode indices out of `n`, spaced evenly in log(index + 1):
+/// every episode at the start, where a learner changes fastest, then ever
+/// sparser, so the kept history spans the early, middle and expert phases
+/// (PPO-Lagrangian converges within the first tenth of a SafeDarkRoom run, so
+/// a history cut to its first episodes, or subsampled evenly, shows either no
+/// expert phase or almost no learning). Strictly increasing, from 0 to n - 1.
+pub fn log_spaced(n: usize, keep: usize) -> Vec<usize> {
+    if keep >= n {
+        return (0..n).collect();
+    }
+    let mut out: Vec<usize> = Vec::with_capacity(keep);
+    for j in 0..keep {
+        let x = (n as f64).powf(j as f64 / (keep - 1).max(1) as f64).round() as usize;
+        let floor = out.last().map_or(0, |&p| p + 1);
+        out.push(x.saturating_sub(1).max(floor).min(n - keep + j));
+    }
+    out
 }
 
 impl DatasetConfig {
@@ -101,6 +124,7 @@ impl DatasetConfig {
             physics_steps_per_action: None,
             ppo,
             noise_end_fraction: 0.8,
+            keep_episodes: None,
         }
     }
 
@@ -128,6 +152,11 @@ impl DatasetConfig {
             return Err(DatasetError::Config(format!(
                 "the noisy-optimal source plans on SafeDarkRoom's grid; {env} is not supported"
             )));
+        }
+        if self.keep_episodes == Some(0) {
+            return Err(DatasetError::Config(
+                "keep_episodes must be at least 1 (or absent to keep every episode)".into(),
+            ));
         }
         if !(self.noise_end_fraction > 0.0 && self.noise_end_fraction <= 1.0) {
             return Err(DatasetError::Config(format!(
@@ -232,6 +261,10 @@ pub fn generate(
     let mut metrics = Vec::with_capacity(jobs.len());
     for r in results {
         let (h, m) = r?;
+        let h = match cfg.keep_episodes {
+            Some(k) => h.keep_episodes(&log_spaced(h.episodes().len(), k), obs_dim, action_dim),
+            None => h,
+        };
         histories.push(h);
         metrics.push(m);
     }
@@ -272,6 +305,8 @@ pub struct DatasetCommand {
     pub source: Source,
     /// Point and Car: physics steps per agent action; `None`: the default (50).
     pub physics_steps_per_action: Option<usize>,
+    /// Episodes kept per history (log-spaced); `None` keeps all.
+    pub keep_episodes: Option<usize>,
 }
 
 /// What the `dataset` command made.
@@ -300,6 +335,7 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
     cfg.threads = cmd.threads;
     cfg.source = cmd.source;
     cfg.physics_steps_per_action = cmd.physics_steps_per_action;
+    cfg.keep_episodes = cmd.keep_episodes;
     if let Some(c) = &cmd.cost_limits {
         cfg.cost_limits = c.clone();
     }
@@ -790,5 +826,57 @@ mod tests {
         assert!(!d.file.histories[1].is_empty());
         let json: serde_json::Value = serde_json::from_str(&d.file.info.config).unwrap();
         assert_eq!(json["dataset"]["steps"], 1024);
+    }
+
+    #[test]
+    fn log_spaced_keeps_every_early_episode_and_thins_later_ones() {
+        let idx = log_spaced(10_000, 200);
+        assert_eq!(idx.len(), 200);
+        assert_eq!((idx[0], idx[199]), (0, 9_999));
+        assert!(idx.windows(2).all(|w| w[0] < w[1]));
+        // Dense at the start (where a learner changes fastest) ...
+        assert_eq!(&idx[..20], &(0..20).collect::<Vec<_>>()[..]);
+        // ... and a quarter of the kept episodes after the first tenth.
+        let early = idx.iter().filter(|&&i| i < 1_000).count();
+        assert!(
+            (140..=160).contains(&early),
+            "{early} of 200 in the first tenth"
+        );
+        assert_eq!(log_spaced(5, 9), vec![0, 1, 2, 3, 4]);
+        assert_eq!(log_spaced(7, 7), (0..7).collect::<Vec<_>>());
+        assert_eq!(log_spaced(100, 1), vec![0]);
+    }
+
+    #[test]
+    fn kept_episodes_are_whole_and_in_order() {
+        let mut cfg = DatasetConfig::paper(EnvName::DarkRoom, 1, 5);
+        cfg.steps = 3000;
+        cfg.cost_limits = vec![0.0];
+        cfg.source = Source::NoisyOptimal;
+        let full = generate(&cfg, &|_| {}).unwrap().file.histories.remove(0);
+        cfg.keep_episodes = Some(40);
+        let kept = generate(&cfg, &|_| {}).unwrap().file.histories.remove(0);
+        let (fe, ke) = (full.episodes(), kept.episodes());
+        let picked = log_spaced(fe.len(), 40);
+        assert_eq!(ke.len(), 40);
+        for (k, &e) in ke.iter().zip(&picked) {
+            let f = fe[e].clone();
+            assert_eq!(kept.rewards[k.clone()], full.rewards[f.clone()]);
+            assert_eq!(kept.costs[k.clone()], full.costs[f.clone()]);
+            assert_eq!(
+                kept.observations[k.start * 2..k.end * 2],
+                full.observations[f.start * 2..f.end * 2]
+            );
+        }
+        let json: serde_json::Value =
+            serde_json::from_str(&generate(&cfg, &|_| {}).unwrap().file.info.config).unwrap();
+        assert_eq!(json["dataset"]["keep_episodes"], 40);
+        cfg.keep_episodes = Some(0);
+        assert!(
+            generate(&cfg, &|_| {})
+                .unwrap_err()
+                .to_string()
+                .contains("keep_episodes")
+        );
     }
 }

@@ -15,7 +15,7 @@
 //! Deviations from Algorithm 1, each for a measured reason (results/eppo_ladder):
 //! - Each token also carries the observation the previous action arrived at,
 //!   so the goal, where the auto-reset replaces the final observation, enters
-//!   the context with its reward (`push_token`).
+//!   the context with its reward ([`crate::tokens`]).
 //! - The reward critic bootstraps across episode boundaries (the meta-RL
 //!   objective is the sum of the K returns); the cost critic never does, since
 //!   the budget binds each episode alone (Eq. 6): a violation charges only its
@@ -61,6 +61,7 @@ use crate::checkpoint::{CheckpointError, MetricsWriter, RunDir, read_manifest};
 use crate::model::{self, KvCache, ModelError, Transformer};
 use crate::optim::{Adam, AdamConfig};
 use crate::task_seeds::{PretrainTasks, pretrain_task_seed};
+use crate::tokens::{self, StepToken};
 
 // ---------------------------------------------------------------------------
 // Configuration
@@ -508,7 +509,7 @@ impl NetSpec {
     /// Width of one time-step token: obs, arrived obs, previous action,
     /// reward, cost, CTG, start flag.
     pub fn token_dim(&self) -> usize {
-        2 * self.obs_dim + self.act_flat() + 4
+        tokens::token_dim(self.obs_dim, self.act_flat(), 1)
     }
 
     /// Observation mapped to [-1, 1] where the bounds are finite.
@@ -776,13 +777,9 @@ impl Replay {
 // Tokens: the same construction for collection, training and evaluation
 // ---------------------------------------------------------------------------
 
-/// Writes one token: obs s_t and the observation a_{t-1} arrived at (both
-/// normalised), a_{t-1}, r_t (scaled), c_t, CTG_t / ctg_max, start flag.
-///
-/// The arrived observation is what puts the goal in context: at an episode's
-/// end the auto-reset replaces s_t by the next episode's start, so without it
-/// the token carrying reward 1 would never say where the goal was
-/// (Algorithm 1 stores s_{t+1}; AMAGO keeps the agent on the goal one step).
+/// Writes one token ([`crate::tokens`], shared with supervised pretraining):
+/// obs s_t and the observation a_{t-1} arrived at (both normalised), a_{t-1},
+/// r_t (scaled), c_t, CTG_t / ctg_max, start flag.
 #[allow(clippy::too_many_arguments)]
 fn push_token(
     spec: &NetSpec,
@@ -796,13 +793,21 @@ fn push_token(
     ctg: f32,
     start: bool,
 ) {
-    spec.normalise_obs(obs, out);
-    spec.normalise_obs(arrived_obs, out);
-    out.extend_from_slice(prev_action);
-    out.push(reward * cfg.reward_scale as f32);
-    out.push(cost);
-    out.push(ctg / cfg.ctg_max);
-    out.push(if start { 1.0 } else { 0.0 });
+    let step = StepToken {
+        obs,
+        arrived_obs,
+        prev_action,
+        reward,
+        cost,
+        to_go: &[ctg / cfg.ctg_max],
+        start,
+    };
+    tokens::push_token(
+        &step,
+        cfg.reward_scale as f32,
+        |o, out| spec.normalise_obs(o, out),
+        out,
+    );
 }
 
 /// A training batch of B windows of length L (right-padded).

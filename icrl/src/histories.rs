@@ -311,6 +311,26 @@ impl History {
             .collect()
     }
 
+    /// The history of the episodes `keep` (indices in increasing order), in order.
+    pub fn keep_episodes(&self, keep: &[usize], obs_dim: usize, action_dim: usize) -> History {
+        let episodes = self.episodes();
+        let mut out = History::new(self.task.clone(), self.cost_limit);
+        for &e in keep {
+            for t in episodes[e].clone() {
+                out.push(
+                    &self.observations[t * obs_dim..(t + 1) * obs_dim],
+                    &self.actions[t * action_dim..(t + 1) * action_dim],
+                    self.rewards[t],
+                    self.costs[t],
+                    &self.next_observations[t * obs_dim..(t + 1) * obs_dim],
+                    self.terminals[t],
+                    self.timeouts[t],
+                );
+            }
+        }
+        out
+    }
+
     /// Drops steps after the last finished episode (a learning run stopped by a
     /// step budget mid-episode).
     pub fn truncate_to_finished_episodes(&mut self, obs_dim: usize, action_dim: usize) {

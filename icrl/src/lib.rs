@@ -8,6 +8,7 @@
 //! - [`json_bounds`]: space bounds (possibly infinite) in checkpoint JSON.
 //! - [`presets`]: built-in TOML presets and `--set key=value` overrides.
 //! - [`task_seeds`]: the split of task seeds between pretraining and evaluation.
+//! - [`tokens`]: the time-step token both learners feed the transformer.
 //! - [`guard`]: setting ranges, finite-weight checks and the memory estimate.
 //! - [`stop`]: graceful stop on the first SIGINT/SIGTERM.
 //!
@@ -46,6 +47,7 @@ pub mod run_summary;
 pub mod stats;
 pub mod stop;
 pub mod task_seeds;
+pub mod tokens;
 
 #[cfg(test)]
 mod reliability_tests;

@@ -159,12 +159,18 @@ mod tests {
         assert!(err.contains("modle.n_layers"), "{err}");
         // A field absent from the table is added; a misspelt one is refused
         // when resolved, naming the valid fields.
-        let mut t = preset_table("eppo", "point", "quick").unwrap();
-        apply_overrides(&mut t, &["task_pool=1".into()]).unwrap();
-        assert_eq!(resolve::<EppoConfig>("x", t.clone()).unwrap().task_pool, 1);
-        apply_overrides(&mut t, &["task_pol=1".into()]).unwrap();
-        let err = resolve::<EppoConfig>("x", t).unwrap_err().to_string();
-        assert!(err.contains("task_pol") && err.contains("task_pool"), "{err}");
+        let mut point = preset_table("eppo", "point", "quick").unwrap();
+        apply_overrides(&mut point, &["task_pool=1".into()]).unwrap();
+        assert_eq!(
+            resolve::<EppoConfig>("x", point.clone()).unwrap().task_pool,
+            1
+        );
+        apply_overrides(&mut point, &["task_pol=1".into()]).unwrap();
+        let err = resolve::<EppoConfig>("x", point).unwrap_err().to_string();
+        assert!(
+            err.contains("task_pol") && err.contains("task_pool"),
+            "{err}"
+        );
         assert!(apply_overrides(&mut t, &["lr".into()]).is_err());
         assert!(
             preset_table("eppo", "darkroom", "huge")

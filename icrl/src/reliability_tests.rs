@@ -443,6 +443,7 @@ fn every_shipped_preset_fits_the_memory_estimate() {
                 dataset_config: String::new(),
                 pretrain_tasks: None,
                 physics_steps_per_action: None,
+                token: Some(ad::TOKEN_LAYOUT.into()),
             };
             // A paper-sized dataset: 100 tasks x 3 limits x 50k steps.
             let m = ad::memory_estimate(&cfg, &spec, 15_000_000);

@@ -80,6 +80,12 @@ struct DatasetArgs {
     /// recorded in the file.
     #[arg(long, value_name = "N")]
     physics_steps_per_action: Option<usize>,
+    /// Keep N episodes of each learning run, spaced evenly in the logarithm of
+    /// the episode index, so that a history spans the early, middle and
+    /// expert phases of learning (default: keep every episode). Recorded in
+    /// the file's config.
+    #[arg(long, value_name = "N")]
+    keep_episodes: Option<usize>,
 }
 
 /// A seed: a whole number from 0 to 2^64 - 1 (clap would call `-1` an
@@ -111,6 +117,7 @@ fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
         threads,
         source,
         physics_steps_per_action: args.physics_steps_per_action,
+        keep_episodes: args.keep_episodes,
     })?;
     println!(
         "wrote {}: {} histories, {} steps{}, {} episodes, {:.1} MB in {:.0} s ({:.0} steps/s); \
