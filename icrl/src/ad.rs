@@ -144,6 +144,10 @@ pub struct AdConfig {
     pub ctg_scale: f32,
     /// Fraction of the tasks whose histories are held out for a validation loss.
     pub val_fraction: f64,
+    /// Fraction of the training tasks (those not held out) whose histories
+    /// are trained on: the dataset-size ablation (paper Figure 6c).
+    #[serde(default = "default_train_fraction")]
+    pub train_fraction: f64,
     /// A window takes every s-th episode of a history, s drawn per window
     /// from 1 to this (1: contiguous windows).
     #[serde(default = "default_episode_stride_max")]
@@ -165,6 +169,10 @@ fn default_keep_checkpoints() -> usize {
 
 fn default_episode_stride_max() -> usize {
     1
+}
+
+fn default_train_fraction() -> f64 {
+    1.0
 }
 
 /// The presets shipped in `icrl/presets/ad-{env}-{preset}.toml`: `table2` is
@@ -262,6 +270,7 @@ impl AdConfig {
                 self.val_fraction,
                 Range::new(0.0, false, 0.9, true),
             ),
+            ("train_fraction", self.train_fraction, Range::UNIT_OPEN_LOW),
         ])
         .map_err(AdError::Config)
     }
@@ -693,6 +702,9 @@ pub struct TrainRequest<'a> {
 #[derive(Clone, Debug)]
 pub struct TrainSummary {
     pub run_dir: PathBuf,
+    /// Histories trained on and held out for the validation loss.
+    pub train_histories: usize,
+    pub val_histories: usize,
     pub updates: usize,
     pub first: Option<AdMetrics>,
     pub last: Option<AdMetrics>,
@@ -919,8 +931,20 @@ pub fn train(
     }
     let n_val_tasks = ((tasks.len() as f64) * cfg.val_fraction).floor() as usize;
     let val_tasks = &tasks[tasks.len() - n_val_tasks..];
-    let (train_h, val_h): (Vec<&History>, Vec<&History>) =
-        hists.iter().partition(|h| !val_tasks.contains(&&h.task));
+    // The dataset-size ablation trains on the first `train_fraction` of the
+    // other tasks (every cost limit of each), against the same held-out ones.
+    let n_train_tasks = tasks.len() - n_val_tasks;
+    let kept = ((n_train_tasks as f64 * cfg.train_fraction).ceil() as usize)
+        .clamp(1, n_train_tasks.max(1));
+    let train_tasks = &tasks[..kept];
+    let train_h: Vec<&History> = hists
+        .iter()
+        .filter(|h| train_tasks.contains(&&h.task))
+        .collect();
+    let val_h: Vec<&History> = hists
+        .iter()
+        .filter(|h| val_tasks.contains(&&h.task))
+        .collect();
     let train_set = TokenSet::new(&spec, cfg, &train_h);
     let val_set = TokenSet::new(&spec, cfg, &val_h);
 
@@ -1107,6 +1131,8 @@ pub fn train(
     }
     Ok(TrainSummary {
         run_dir: dir.to_path_buf(),
+        train_histories: train_set.len(),
+        val_histories: val_set.len(),
         updates: state.update,
         first,
         last,
@@ -1755,6 +1781,30 @@ mod tests {
             let steps = set.window_steps(&set.histories[0], 12, &mut rng);
             assert!(steps.windows(2).all(|w| w[1] == w[0] + 1), "{steps:?}");
         }
+    }
+
+    #[test]
+    fn the_ablation_trains_on_a_fraction_of_the_tasks() {
+        let mut d = DatasetConfig::paper(EnvName::DarkRoom, 8, 11);
+        d.source = Source::NoisyOptimal;
+        d.steps = 300;
+        d.cost_limits = vec![0.0, 5.0];
+        let data = generate(&d, &|_| {}).unwrap().file;
+        let mut cfg = tiny_cfg();
+        (cfg.updates, cfg.val_fraction, cfg.train_fraction) = (2, 0.25, 0.5);
+        let dir = std::env::temp_dir().join(format!("icrl-ad-frac-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&dir);
+        let req = TrainRequest {
+            cfg: &cfg,
+            data: &data,
+            dataset_path: Path::new("tiny.h5"),
+            run_dir: &dir,
+            resume: None,
+        };
+        let s = train(&req, &mut |_| {}, &mut |_| {}).unwrap();
+        // 8 tasks: 2 held out; half of the other 6 trained on; 2 limits each.
+        assert_eq!((s.train_histories, s.val_histories), (6, 4));
+        let _ = fs::remove_dir_all(&dir);
     }
 
     #[test]

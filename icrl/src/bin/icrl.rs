@@ -188,10 +188,12 @@ fn pretrain_ad(args: PretrainArgs) -> anyhow::Result<()> {
     )?;
     let last = s.last.as_ref();
     println!(
-        "run {} finished: {} updates (resumed from {}); last train loss {}, val loss {}",
+        "run {} finished: {} updates (resumed from {}) on {} histories ({} held out); last train loss {}, val loss {}",
         s.run_dir.display(),
         s.updates,
         s.resumed_from,
+        s.train_histories,
+        s.val_histories,
         last.map_or("-".into(), |m| format!("{:.4}", m.train_loss)),
         last.and_then(|m| m.val_loss)
             .map_or("-".into(), |v| format!("{v:.4}"))
