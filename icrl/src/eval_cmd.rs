@@ -117,6 +117,38 @@ pub struct LoadedAgent {
     pub physics_steps_per_action: Option<usize>,
     /// What the checkpoint's run reached (e.g. "update 1200 of 3000"), for the report.
     pub note: String,
+    /// A name for the legends and file names (`--label`), when several
+    /// checkpoints of one method are compared (an ablation); `None`: the method.
+    pub label: Option<String>,
+}
+
+impl LoadedAgent {
+    /// The name in legends: the label, else the method.
+    fn name(&self) -> String {
+        self.label
+            .clone()
+            .unwrap_or_else(|| self.method.to_string())
+    }
+
+    /// The file-name stem: the method's, plus the label's letters and digits.
+    fn stem(&self) -> String {
+        match &self.label {
+            None => self.method.stem().to_string(),
+            Some(l) => {
+                let slug: String = l
+                    .chars()
+                    .map(|c| {
+                        if c.is_ascii_alphanumeric() {
+                            c.to_ascii_lowercase()
+                        } else {
+                            '-'
+                        }
+                    })
+                    .collect();
+                format!("{}_{}", self.method.stem(), slug.trim_matches('-'))
+            }
+        }
+    }
 }
 
 /// A model whose context holds a fixed number of steps (EPPO): its time
@@ -222,6 +254,9 @@ pub fn env_defaults(env: EnvName) -> EnvDefaults {
 pub struct EvalReport {
     pub env: String,
     pub method: Method,
+    /// The `--label` given to this checkpoint, if any.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub label: Option<String>,
     pub checkpoint: Option<String>,
     pub checkpoint_note: String,
     /// "figure1" or "sweep".
@@ -512,6 +547,7 @@ fn run_one(
     let report = EvalReport {
         env: env.to_string(),
         method: loaded.method,
+        label: loaded.label.clone(),
         checkpoint: loaded.checkpoint.as_ref().map(|p| p.display().to_string()),
         checkpoint_note: loaded.note.clone(),
         protocol: protocol.into(),
@@ -528,7 +564,7 @@ fn run_one(
     };
     let stem = opts.out.join(format!(
         "{}_{}{}{}",
-        loaded.method.stem(),
+        loaded.stem(),
         env,
         if sweep { "_sweep" } else { "" },
         if opts.in_distribution { "_centre" } else { "" }
@@ -661,6 +697,7 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
             context: None,
             physics_steps_per_action: None,
             note: String::new(),
+            label: None,
         });
     }
     check_output_dir(&opts.out)?;
@@ -691,20 +728,20 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
         if record && let Some(rec) = &report.result.recording {
             let gif = opts
                 .out
-                .join(format!("render_{}_{}.gif", loaded.method.stem(), opts.env));
+                .join(format!("render_{}_{}.gif", loaded.stem(), opts.env));
             render(opts.env, &report, rec, &gif)?;
             out.files.push(gif);
         }
         match loaded.method {
             Method::Random => fig1.random = Some(report.summary),
-            m => fig1.methods.push((m.to_string(), report.summary)),
+            _ => fig1.methods.push((loaded.name(), report.summary)),
         }
         if opts.sweep {
             let report = run_one(loaded, true, opts, false, &mut out.files)?;
             out.lines.push(headline(&report));
             match loaded.method {
                 Method::Random => fig2.random = Some(report.summary),
-                m => fig2.methods.push((m.to_string(), report.summary)),
+                _ => fig2.methods.push((loaded.name(), report.summary)),
             }
         }
     }
@@ -911,6 +948,33 @@ mod tests {
             seed_torch: false,
             in_distribution: false,
         }
+    }
+
+    #[test]
+    fn labels_name_checkpoints_of_one_method_apart() {
+        let probe = make_env(EnvName::DarkRoom, &EnvOptions::default()).unwrap();
+        let agent = |label: Option<&str>| LoadedAgent {
+            method: Method::Ad,
+            agent: Box::new(RandomAgent::new(probe.action_space(), 0)),
+            checkpoint: None,
+            pretrain_tasks: None,
+            budget_range: None,
+            parameters: Vec::new(),
+            context: None,
+            physics_steps_per_action: None,
+            note: String::new(),
+            label: label.map(String::from),
+        };
+        assert_eq!(
+            (agent(None).name(), agent(None).stem()),
+            ("AD".into(), "ad".into())
+        );
+        let a = agent(Some("AD 25% of tasks"));
+        assert_eq!(
+            (a.name(), a.stem()),
+            ("AD 25% of tasks".into(), "ad_ad-25--of-tasks".into())
+        );
+        assert_ne!(agent(Some("AD 50%")).stem(), agent(Some("AD 100%")).stem());
     }
 
     #[test]

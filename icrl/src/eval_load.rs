@@ -145,6 +145,7 @@ pub fn load_checkpoint(path: &Path, env: EnvName) -> Result<LoadedAgent, EvalCmd
                 // Recorded in the manifest (read_manifest refuses Point and
                 // Car checkpoints that do not record it).
                 physics_steps_per_action: manifest.physics_steps_per_action,
+                label: None,
                 note: format!(
                     "EPPO checkpoint after {} updates (run planned {}), K_max {}, context {} steps",
                     manifest.updates, cfg.total_updates, cfg.k_max, cfg.model.max_len
@@ -183,6 +184,7 @@ pub fn load_checkpoint(path: &Path, env: EnvName) -> Result<LoadedAgent, EvalCmd
                 context: None,
                 // The dataset's, recorded in spec.json.
                 physics_steps_per_action: info.physics_steps_per_action,
+                label: None,
                 note: format!(
                     "AD run after {} of {} updates",
                     info.updates_done, info.updates_planned

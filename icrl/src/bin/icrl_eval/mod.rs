@@ -13,6 +13,10 @@ pub struct EvalArgs {
     /// or an AD run folder. Repeat to draw several methods on the same axes.
     #[arg(long, value_name = "DIR")]
     checkpoint: Vec<PathBuf>,
+    /// A name for each --checkpoint, in order, in legends and file names
+    /// (e.g. to compare AD trained on 25%, 50% and 100% of a dataset).
+    #[arg(long, value_name = "NAME")]
+    label: Vec<String>,
     /// Environment (required unless --from).
     #[arg(long, value_parser = ["darkroom", "point", "car"])]
     env: Option<String>,
@@ -110,11 +114,21 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
     opts.validate()?;
     eval_cmd::check_output_dir(&opts.out)?;
     tch::set_num_threads(threads as i32);
-    let agents = args
+    if !args.label.is_empty() && args.label.len() != args.checkpoint.len() {
+        anyhow::bail!(
+            "--label given {} times for {} --checkpoint: give one label per checkpoint, in the same order",
+            args.label.len(),
+            args.checkpoint.len()
+        );
+    }
+    let mut agents = args
         .checkpoint
         .iter()
         .map(|p| icrl::eval_load::load_checkpoint(p, env))
         .collect::<Result<Vec<_>, _>>()?;
+    for (agent, label) in agents.iter_mut().zip(&args.label) {
+        agent.label = Some(label.clone());
+    }
     let out = eval_cmd::run(agents, &opts)?;
     for line in &out.lines {
         println!("{line}");
