@@ -161,6 +161,9 @@ pub struct AdConfig {
     pub keep_checkpoints: usize,
     /// Seed of initialisation and window sampling.
     pub seed: u64,
+    /// libtorch intra-op threads; 0 keeps libtorch's default (one per core).
+    #[serde(default)]
+    pub torch_threads: i32,
 }
 
 fn default_keep_checkpoints() -> usize {
@@ -253,6 +256,12 @@ impl AdConfig {
             ("episode_stride_max", self.episode_stride_max as i128),
         ])
         .map_err(AdError::Config)?;
+        if !(0..=1024).contains(&self.torch_threads) {
+            return Err(AdError::Config(format!(
+                "torch_threads = {}: must be in [0, 1024] (0 keeps libtorch's default)",
+                self.torch_threads
+            )));
+        }
         check_numbers(&[
             ("learning_rate", self.learning_rate, Range::UNIT_OPEN_LOW),
             ("beta1", self.beta1, Range::UNIT_OPEN_HIGH),
@@ -911,6 +920,9 @@ pub fn train(
     // train to NaN or abort on an out-of-range class index.
     req.data.validate(req.dataset_path)?;
     let dir = req.run_dir;
+    if cfg.torch_threads > 0 {
+        tch::set_num_threads(cfg.torch_threads);
+    }
     let spec = spec_for(req.data, req.dataset_path);
     memory_estimate(cfg, &spec, req.data.total_steps())
         .check()
