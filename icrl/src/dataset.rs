@@ -314,7 +314,10 @@ pub struct DatasetCommand {
 pub struct DatasetReport {
     pub out: std::path::PathBuf,
     pub histories: usize,
+    /// Steps in the file (fewer than taken when episodes were subsampled).
     pub steps: usize,
+    /// Environment steps the learners took.
+    pub steps_taken: usize,
     pub episodes: usize,
     pub seconds: f64,
     pub bytes: u64,
@@ -410,6 +413,7 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
         out: cmd.out.clone(),
         histories: data.file.histories.len(),
         steps: data.file.total_steps(),
+        steps_taken: total as usize,
         episodes,
         seconds,
         bytes,

@@ -120,7 +120,7 @@ fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
         keep_episodes: args.keep_episodes,
     })?;
     println!(
-        "wrote {}: {} histories, {} steps{}, {} episodes, {:.1} MB in {:.0} s ({:.0} steps/s); \
+        "wrote {}: {} histories, {} steps{}, {} episodes, {:.1} MB in {:.0} s ({:.0} environment steps/s{}); \
          first 10% of episodes: return {:.3} cost {:.3}; last 10%: return {:.3} cost {:.3}",
         r.out.display(),
         r.histories,
@@ -130,7 +130,12 @@ fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
         r.episodes,
         r.bytes as f64 / 1e6,
         r.seconds,
-        r.steps as f64 / r.seconds,
+        r.steps_taken as f64 / r.seconds,
+        if r.steps < r.steps_taken {
+            format!(", {} steps taken, episodes kept log-spaced", r.steps_taken)
+        } else {
+            String::new()
+        },
         r.early.0,
         r.early.1,
         r.late.0,
