@@ -163,8 +163,13 @@ mod tests {
         apply_overrides(&mut t, &["task_pool=1".into()]).unwrap();
         assert_eq!(resolve::<EppoConfig>("x", t.clone()).unwrap().task_pool, 1);
         apply_overrides(&mut t, &["task_pol=1".into()]).unwrap();
-        let err = resolve::<EppoConfig>("x", t).unwrap_err().to_string();
-        assert!(err.contains("task_pol") && err.contains("task_pool"), "{err}");
+        let err = resolve::<EppoConfig>("x", t.clone())
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("task_pol") && err.contains("task_pool"),
+            "{err}"
+        );
         assert!(apply_overrides(&mut t, &["lr".into()]).is_err());
         assert!(
             preset_table("eppo", "darkroom", "huge")
