@@ -110,6 +110,13 @@ pub struct EppoConfig {
     pub bootstrap_across_episodes: bool,
     /// Polyak factor of the target networks (target <- (1 - tau) target + tau online).
     pub tau: f64,
+    /// Steps of real rewards in each TD target before bootstrapping (n-step
+    /// returns, each step's sum stopping where its bootstrap mask stops):
+    /// with sparse rewards and gamma near 1 a one-step target moves value
+    /// (and corrects stale optimism) one step per target-network lag;
+    /// n steps move it n times faster. 1: the paper's one-step target.
+    #[serde(default = "default_n_step")]
+    pub n_step: usize,
     /// Adam learning rate.
     pub lr: f64,
     /// Adam beta1.
@@ -191,6 +198,11 @@ pub struct EppoConfig {
     pub physics_steps_per_action: Option<usize>,
 }
 
+/// Absent from a config: one-step TD targets (the paper's).
+fn default_n_step() -> usize {
+    1
+}
+
 /// Absent from a config: the environment's default macro action.
 fn default_physics_steps_per_action() -> Option<usize> {
     None
@@ -246,6 +258,7 @@ impl EppoConfig {
             ("total_updates", i128::from(self.total_updates)),
             ("updates_per_round", i128::from(self.updates_per_round)),
             ("checkpoint_every", i128::from(self.checkpoint_every)),
+            ("n_step", self.n_step as i128),
             (
                 "physics_steps_per_action",
                 self.physics_steps_per_action.map_or(1, |n| n as i128),
@@ -1040,6 +1053,29 @@ fn masked_mean(x: &Tensor, mask: &Tensor) -> Tensor {
     (x * mask).sum(Kind::Float) / mask.sum(Kind::Float).clamp_min(1.0)
 }
 
+/// n-step TD targets, (B, L) each: y1_t = r_t + gamma b_t V'_{t+1} and
+/// y(m)_t = r_t + gamma b_t [y(m-1)_{t+1} if step t + 1 has a target of its
+/// own, else V'_{t+1}], so every sum stops where its bootstrap mask `b`
+/// stops (terminal, trajectory or window end) and falls back to the one-step
+/// bootstrap at a step without a target (truncated, episodes apart).
+/// `v_next` is V'(t + 1) at position t.
+fn n_step_targets(
+    r: &Tensor,
+    bootstrap: &Tensor,
+    td_valid: &Tensor,
+    v_next: &Tensor,
+    gamma: f64,
+    n: usize,
+) -> Tensor {
+    let mut y = r + bootstrap * v_next * gamma;
+    let valid_next = next_step(td_valid);
+    for _ in 1..n {
+        let ahead = &valid_next * next_step(&y) + (valid_next.ones_like() - &valid_next) * v_next;
+        y = r + bootstrap * ahead * gamma;
+    }
+    y
+}
+
 /// The three losses on one batch (before any step), and the policy entropy.
 fn losses(
     net: &EppoNet,
@@ -1081,8 +1117,22 @@ fn losses(
     // y = r + gamma * [bootstraps] * V'(t + 1); the bootstrap masks carry the
     // terminated / truncated / trajectory-end decision made in `make_batch`;
     // the cost's also stops at every episode end (per-episode constraint).
-    let y = &batch.rewards + &batch.bootstrap * &v_next * cfg.gamma; // (B, L)
-    let yc = &batch.costs + &batch.cost_bootstrap * &vc_next * cfg.gamma; // (B, L)
+    let y = n_step_targets(
+        &batch.rewards,
+        &batch.bootstrap,
+        &batch.td_valid,
+        &v_next,
+        cfg.gamma,
+        cfg.n_step,
+    ); // (B, L)
+    let yc = n_step_targets(
+        &batch.costs,
+        &batch.cost_bootstrap,
+        &batch.td_valid,
+        &vc_next,
+        cfg.gamma,
+        cfg.n_step,
+    ); // (B, L)
     let td_mask = batch.td_valid.unsqueeze(-1); // (B, L, 1)
     let mut log_std_mean = None;
     let (q_taken, qc_taken, policy_loss, entropy) = match net.spec.n_actions {
@@ -3065,6 +3115,31 @@ pub(crate) mod tests {
                 "discrete {discrete}: BC term {first} -> {last} (-mean keep * log pi must fall)"
             );
         }
+    }
+
+    #[test]
+    fn n_step_targets_sum_rewards_until_the_bootstrap_stops() {
+        let t = |v: &[f32]| Tensor::from_slice(v).view([1, v.len() as i64]);
+        // Steps 0..5: reward at step 2 (terminal: no bootstrap past it), then
+        // a step 3 without a target of its own (truncated), then 4 and 5.
+        let r = t(&[0.0, 0.0, 1.0, 0.0, 0.0, 2.0]);
+        let boot = t(&[1.0, 1.0, 0.0, 1.0, 1.0, 0.0]);
+        let valid = t(&[1.0, 1.0, 1.0, 0.0, 1.0, 1.0]);
+        let v_next = t(&[10.0, 20.0, 30.0, 40.0, 50.0, 60.0]);
+        let g = 0.5;
+        let y1 = to_vec(&n_step_targets(&r, &boot, &valid, &v_next, g, 1));
+        assert_eq!(y1, vec![5.0, 10.0, 1.0, 20.0, 25.0, 2.0]);
+        let y3 = to_vec(&n_step_targets(&r, &boot, &valid, &v_next, g, 3));
+        // 0: 0 + g (0 + g (1)) = 0.25; 1: 0 + g 1 = 0.5; 2: 1;
+        // 3: r3 + g [valid 4] y(2)_4 = 0 + g (0 + g 2) = 0.5;
+        // 4: 0 + g 2 = 1; 5: 2.
+        assert_eq!(y3, vec![0.25, 0.5, 1.0, 0.5, 1.0, 2.0]);
+        // Step 2 bootstraps into step 3, which has no target: one-step there.
+        let boot2 = t(&[1.0, 1.0, 1.0, 0.0, 1.0, 0.0]);
+        let y2 = to_vec(&n_step_targets(&r, &boot2, &valid, &v_next, g, 2));
+        // 1: 0 + g y(1)_2 = g (1 + g 30) = 8; 2: 1 + g V'_3 (step 3 has no target) = 1 + 15.
+        assert_eq!(y2[1], 8.0);
+        assert_eq!(y2[2], 16.0);
     }
 
     #[test]
