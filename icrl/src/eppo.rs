@@ -111,6 +111,13 @@ pub struct EppoConfig {
     pub bootstrap_across_episodes: bool,
     /// Polyak factor of the target networks (target <- (1 - tau) target + tau online).
     pub tau: f64,
+    /// Steps of real rewards in each TD target before bootstrapping (n-step
+    /// returns, each step's sum stopping where its bootstrap mask stops):
+    /// with sparse rewards and gamma near 1 a one-step target moves value
+    /// (and corrects stale optimism) one step per target-network lag;
+    /// n steps move it n times faster. 1: the paper's one-step target.
+    #[serde(default = "default_n_step")]
+    pub n_step: usize,
     /// Adam learning rate.
     pub lr: f64,
     /// Adam beta1.
@@ -145,6 +152,13 @@ pub struct EppoConfig {
     pub critic_weight: f64,
     /// Entropy bonus weight in the actor loss.
     pub entropy_coef: f64,
+    /// Weight of AMAGO's filtered behaviour cloning in the actor loss:
+    /// -1[A(h_t, a_t) > 0] log pi(a_t | h_t) on the replayed actions, with
+    /// A = Q(h_t, a_t) - E_pi Q(h_t, .) from the reward critics (mean over
+    /// the ensemble, no gradient). It anchors the actor to replayed actions
+    /// that beat its own (0: off, the paper's Lp alone; AMAGO uses 0.1).
+    #[serde(default)]
+    pub bc_coef: f64,
     /// Rewards are multiplied by this in the TD targets and the tokens.
     pub reward_scale: f64,
     /// Epsilon-greedy exploration (discrete actions) at a trajectory's first
@@ -183,6 +197,11 @@ pub struct EppoConfig {
     /// resolved value; resuming with another is refused.
     #[serde(default = "default_physics_steps_per_action")]
     pub physics_steps_per_action: Option<usize>,
+}
+
+/// Absent from a config: one-step TD targets (the paper's).
+fn default_n_step() -> usize {
+    1
 }
 
 /// Absent from a config: the environment's default macro action.
@@ -240,6 +259,7 @@ impl EppoConfig {
             ("total_updates", i128::from(self.total_updates)),
             ("updates_per_round", i128::from(self.updates_per_round)),
             ("checkpoint_every", i128::from(self.checkpoint_every)),
+            ("n_step", self.n_step as i128),
             (
                 "physics_steps_per_action",
                 self.physics_steps_per_action.map_or(1, |n| n as i128),
@@ -267,6 +287,7 @@ impl EppoConfig {
             ("lambda_init", self.lambda_init, Range::NON_NEGATIVE),
             ("critic_weight", self.critic_weight, Range::POSITIVE),
             ("entropy_coef", self.entropy_coef, Range::NON_NEGATIVE),
+            ("bc_coef", self.bc_coef, Range::NON_NEGATIVE),
             // Scaled rewards go into float32 tokens: keep them far from overflow.
             (
                 "reward_scale",
@@ -668,6 +689,19 @@ fn tanh_gaussian_sample(mean: &Tensor, log_std: &Tensor, noise: &Tensor) -> (Ten
     (a, log_prob)
 }
 
+/// log pi(a | mean, log_std) of given squashed actions a in [-1, 1]^A, (.., A)
+/// -> (..): the Gaussian density of u = atanh(a) less log(1 - a^2). Actions
+/// are pulled 1e-6 inside the box first (a stored f32 action can be exactly
+/// +-1, where atanh is infinite).
+fn tanh_gaussian_log_prob(mean: &Tensor, log_std: &Tensor, a: &Tensor) -> Tensor {
+    let a = a.clamp(-1.0 + 1e-6, 1.0 - 1e-6);
+    let u = ((&a + 1.0) / (a.neg() + 1.0)).log() * 0.5; // atanh(a)
+    let z = (u - mean) / log_std.exp();
+    let log_normal = (z.square() * -0.5) - log_std - 0.5 * (2.0 * std::f64::consts::PI).ln();
+    let log_det = (a.square().neg() + (1.0 + 1e-6)).log();
+    (log_normal - log_det).sum_dim_intlist(-1, false, Kind::Float)
+}
+
 // ---------------------------------------------------------------------------
 // Trajectories and the replay buffer
 // ---------------------------------------------------------------------------
@@ -998,6 +1032,19 @@ pub struct UpdateStats {
     pub entropy: f64,
     pub grad_norm: f64,
     pub lambda: f64,
+    /// Diagnostics: mean Q(h_t, a_t) of the reward critics on the replayed
+    /// actions, mean reward TD target, and (continuous actions) the actor's
+    /// mean log-std; NaN where not defined.
+    pub q_mean: f64,
+    pub target_mean: f64,
+    pub log_std_mean: f64,
+}
+
+/// What [`losses`] returns besides the three losses and the entropy.
+struct LossDiagnostics {
+    q_mean: Tensor,
+    target_mean: Tensor,
+    log_std_mean: Option<Tensor>,
 }
 
 /// Shifts (B, L) left by one along time: out[:, t] = x[:, t + 1], 0 at the end.
@@ -1011,6 +1058,29 @@ fn masked_mean(x: &Tensor, mask: &Tensor) -> Tensor {
     (x * mask).sum(Kind::Float) / mask.sum(Kind::Float).clamp_min(1.0)
 }
 
+/// n-step TD targets, (B, L) each: y1_t = r_t + gamma b_t V'_{t+1} and
+/// y(m)_t = r_t + gamma b_t [y(m-1)_{t+1} if step t + 1 has a target of its
+/// own, else V'_{t+1}], so every sum stops where its bootstrap mask `b`
+/// stops (terminal, trajectory or window end) and falls back to the one-step
+/// bootstrap at a step without a target (truncated, episodes apart).
+/// `v_next` is V'(t + 1) at position t.
+fn n_step_targets(
+    r: &Tensor,
+    bootstrap: &Tensor,
+    td_valid: &Tensor,
+    v_next: &Tensor,
+    gamma: f64,
+    n: usize,
+) -> Tensor {
+    let mut y = r + bootstrap * v_next * gamma;
+    let valid_next = next_step(td_valid);
+    for _ in 1..n {
+        let ahead = &valid_next * next_step(&y) + (valid_next.ones_like() - &valid_next) * v_next;
+        y = r + bootstrap * ahead * gamma;
+    }
+    y
+}
+
 /// The three losses on one batch (before any step), and the policy entropy.
 fn losses(
     net: &EppoNet,
@@ -1018,7 +1088,7 @@ fn losses(
     batch: &Batch,
     lambda: f64,
     cfg: &EppoConfig,
-) -> Result<(Tensor, Tensor, Tensor, Tensor), EppoError> {
+) -> Result<(Tensor, Tensor, Tensor, Tensor, LossDiagnostics), EppoError> {
     let h = net.encode(&batch.tokens, true)?; // (B, L, D)
     let c = cfg.n_critics;
     // Targets from the target networks at t + 1, no gradient.
@@ -1052,9 +1122,24 @@ fn losses(
     // y = r + gamma * [bootstraps] * V'(t + 1); the bootstrap masks carry the
     // terminated / truncated / trajectory-end decision made in `make_batch`;
     // the cost's also stops at every episode end (per-episode constraint).
-    let y = &batch.rewards + &batch.bootstrap * &v_next * cfg.gamma; // (B, L)
-    let yc = &batch.costs + &batch.cost_bootstrap * &vc_next * cfg.gamma; // (B, L)
+    let y = n_step_targets(
+        &batch.rewards,
+        &batch.bootstrap,
+        &batch.td_valid,
+        &v_next,
+        cfg.gamma,
+        cfg.n_step,
+    ); // (B, L)
+    let yc = n_step_targets(
+        &batch.costs,
+        &batch.cost_bootstrap,
+        &batch.td_valid,
+        &vc_next,
+        cfg.gamma,
+        cfg.n_step,
+    ); // (B, L)
     let td_mask = batch.td_valid.unsqueeze(-1); // (B, L, 1)
+    let mut log_std_mean = None;
     let (q_taken, qc_taken, policy_loss, entropy) = match net.spec.n_actions {
         Some(_) => {
             let q_all = net.critic_values(&net.critic, &h, false); // (B, L, C, A)
@@ -1075,8 +1160,18 @@ fn losses(
             let penalty = lambda * cfg.reward_scale;
             let per_action = q.neg() + qc * batch.violated.unsqueeze(-1) * penalty; // (B, L, A)
             let entropy = (&pi * &logp).sum_dim_intlist(-1, false, Kind::Float).neg(); // (B, L)
-            let objective = (&pi * per_action).sum_dim_intlist(-1, false, Kind::Float)
+            let mut objective = (&pi * per_action).sum_dim_intlist(-1, false, Kind::Float)
                 - &entropy * cfg.entropy_coef;
+            if cfg.bc_coef > 0.0 {
+                // Filtered BC: A = Q(a_t) - sum_a pi(a) Q(a), mean over critics.
+                let q_mean = q_all.detach().mean_dim(2, false, Kind::Float); // (B, L, A)
+                let idx = batch.actions.unsqueeze(-1); // (B, L, 1)
+                let q_data = q_mean.gather(2, &idx, false).squeeze_dim(2); // (B, L)
+                let v = (&pi.detach() * &q_mean).sum_dim_intlist(-1, false, Kind::Float); // (B, L)
+                let keep = (q_data - v).gt(0.0).to_kind(Kind::Float); // (B, L)
+                let logp_data = logp.gather(2, &idx, false).squeeze_dim(2); // (B, L)
+                objective = objective - keep * logp_data * cfg.bc_coef;
+            }
             (
                 q_taken,
                 qc_taken,
@@ -1088,6 +1183,10 @@ fn losses(
             let q_taken = net.critic_sa(&net.critic, &h, &batch.actions, false); // (B, L, C)
             let qc_taken = net.critic_sa(&net.cost_critic, &h, &batch.actions, false); // (B, L, C)
             let (mean, log_std) = net.gaussian(&h);
+            log_std_mean = Some(masked_mean(
+                &log_std.detach().mean_dim(-1, false, Kind::Float),
+                &batch.valid,
+            ));
             let (a_hat, log_prob) = tanh_gaussian_sample(&mean, &log_std, &mean.randn_like());
             // The critics judge a_hat with frozen parameters and a detached
             // trajectory encoding: the actor loss moves only the actor (and the
@@ -1100,7 +1199,23 @@ fn losses(
                 net.critic_sa(&net.cost_critic, &hd, &a_hat, true)
                     .mean_dim(-1, false, Kind::Float); // (B, L)
             let penalty = lambda * cfg.reward_scale;
-            let objective = q.neg() + qc * &batch.violated * penalty + &log_prob * cfg.entropy_coef;
+            let mut objective =
+                q.neg() + qc * &batch.violated * penalty + &log_prob * cfg.entropy_coef;
+            if cfg.bc_coef > 0.0 {
+                // Filtered BC: A = Q(a_t) - Q(a_hat) (one sample of E_pi),
+                // mean over critics, no gradient anywhere in the filter.
+                let keep = tch::no_grad(|| {
+                    let q_data = q_taken.mean_dim(-1, false, Kind::Float); // (B, L)
+                    let v = net.critic_sa(&net.critic, &hd, &a_hat, true).mean_dim(
+                        -1,
+                        false,
+                        Kind::Float,
+                    ); // (B, L)
+                    (q_data - v).gt(0.0).to_kind(Kind::Float)
+                });
+                let logp_data = tanh_gaussian_log_prob(&mean, &log_std, &batch.actions); // (B, L)
+                objective = objective - keep * logp_data * cfg.bc_coef;
+            }
             (
                 q_taken,
                 qc_taken,
@@ -1108,6 +1223,14 @@ fn losses(
                 masked_mean(&log_prob.neg(), &batch.valid),
             )
         }
+    };
+    let diagnostics = LossDiagnostics {
+        q_mean: masked_mean(
+            &q_taken.detach().mean_dim(-1, false, Kind::Float),
+            &batch.td_valid,
+        ),
+        target_mean: masked_mean(&y, &batch.td_valid),
+        log_std_mean,
     };
     let value_loss = masked_mean(
         &(q_taken - y.unsqueeze(-1)).square(),
@@ -1117,7 +1240,13 @@ fn losses(
         &(qc_taken - yc.unsqueeze(-1)).square(),
         &td_mask.expand([-1, -1, c], false),
     );
-    Ok((value_loss, cost_value_loss, policy_loss, entropy))
+    Ok((
+        value_loss,
+        cost_value_loss,
+        policy_loss,
+        entropy,
+        diagnostics,
+    ))
 }
 
 /// Eq. (7): lambda <- clip(lambda + eta * mean_j max_k (C_jk - delta_j), 0, lambda_max).
@@ -1184,6 +1313,10 @@ pub struct RoundStats {
     pub discovery_rate: f64,
     pub revisit_rate: f64,
     pub found: f64,
+    /// Continuous actions: mean |a| of the collected actions (in [-1, 1])
+    /// and the fraction with |a| > 0.99; NaN for discrete actions.
+    pub action_abs: f64,
+    pub action_saturated: f64,
 }
 
 /// (discovery rate, revisit rate, fraction found at least once) over
@@ -1401,7 +1534,22 @@ impl Learner {
         self.env_steps += steps;
         let (discovery_rate, revisit_rate, found) =
             search_rates(trajs.iter().map(|t| t.episode_success.as_slice()));
+        let (action_abs, action_saturated) = if self.spec.n_actions.is_some() {
+            (f64::NAN, f64::NAN)
+        } else {
+            let all = || {
+                trajs
+                    .iter()
+                    .flat_map(|t| t.actions.iter().map(|&x| f64::from(x.abs())))
+            };
+            (
+                mean(all()),
+                mean(all().map(|x| if x > 0.99 { 1.0 } else { 0.0 })),
+            )
+        };
         let stats = RoundStats {
+            action_abs,
+            action_saturated,
             discovery_rate,
             revisit_rate,
             found,
@@ -1444,7 +1592,7 @@ impl Learner {
         tch::manual_seed((self.cfg.seed ^ 0x5EED_0000).wrapping_add(self.updates) as i64);
         let trajs = self.replay.sample(self.cfg.batch_size, &mut self.rng);
         let batch = make_batch(&trajs, &self.cfg, &self.spec, &mut self.rng, self.device);
-        let (lv, lc, lp, entropy) =
+        let (lv, lc, lp, entropy, diag) =
             losses(&self.net, &self.target, &batch, self.lambda, &self.cfg)?;
         let loss = (&lv + &lc) * self.cfg.critic_weight + &lp;
         // A NaN or infinite loss or gradient is never applied: the weights
@@ -1479,6 +1627,9 @@ impl Learner {
             entropy: entropy.double_value(&[]),
             grad_norm,
             lambda: self.lambda,
+            q_mean: diag.q_mean.double_value(&[]),
+            target_mean: diag.target_mean.double_value(&[]),
+            log_std_mean: diag.log_std_mean.map_or(f64::NAN, |t| t.double_value(&[])),
         })
     }
 
@@ -1810,6 +1961,11 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
             "losses/policy_loss": avg(|s| s.policy_loss),
             "losses/entropy": avg(|s| s.entropy),
             "losses/grad_norm": avg(|s| s.grad_norm),
+            "losses/q_mean": avg(|s| s.q_mean),
+            "losses/target_mean": avg(|s| s.target_mean),
+            "losses/log_std_mean": avg(|s| s.log_std_mean),
+            "charts/action_abs": round.action_abs,
+            "charts/action_saturated": round.action_saturated,
             "charts/epsilon": learner.epsilon(),
             "charts/updates_per_s": ups,
             "charts/env_steps_per_s": sps,
@@ -2562,7 +2718,7 @@ pub(crate) mod tests {
         let mut first = None;
         let mut last = (0.0, 0.0);
         for _ in 0..300 {
-            let (lv, lc, _, _) =
+            let (lv, lc, _, ..) =
                 losses(&learner.net, &learner.target, &batch, 0.0, &learner.cfg).unwrap();
             let now = (lv.double_value(&[]), lc.double_value(&[]));
             first.get_or_insert(now);
@@ -2616,7 +2772,7 @@ pub(crate) mod tests {
         let mut batch = make_batch(&trajs, &learner.cfg, &learner.spec, &mut rng, Device::Cpu);
         let policy_loss = |batch: &Batch, lambda: f64| {
             tch::manual_seed(0);
-            let (_, _, lp, _) =
+            let (_, _, lp, ..) =
                 losses(&learner.net, &learner.target, batch, lambda, &learner.cfg).unwrap();
             lp.double_value(&[])
         };
@@ -2816,7 +2972,7 @@ pub(crate) mod tests {
         let batch = make_batch(&[&t, &t], &cfg, &spec, &mut rng, Device::Cpu);
         assert_eq!(batch.tokens.size(), vec![2, 5, 3 + 3 + 2 + 4]);
         assert_eq!(batch.actions.size(), vec![2, 5, 2]);
-        let (lv, lc, lp, _) = losses(&net, &target, &batch, 1.0, &cfg).unwrap();
+        let (lv, lc, lp, ..) = losses(&net, &target, &batch, 1.0, &cfg).unwrap();
         let mut opt = Adam::new(
             &vs,
             AdamConfig {
@@ -2848,7 +3004,7 @@ pub(crate) mod tests {
                 .double_value(&[])
                 > 0.0
         );
-        let (lv2, lc2, lp2, _) = losses(&net, &target, &batch, 1.0, &cfg).unwrap();
+        let (lv2, lc2, lp2, ..) = losses(&net, &target, &batch, 1.0, &cfg).unwrap();
         assert!(opt.backward_step(&(lv2 + lc2 + lp2)) > 0.0);
         assert!(lv.double_value(&[]).is_finite() && lc.double_value(&[]).is_finite());
         // Acting: actions land inside the box.
@@ -2869,6 +3025,126 @@ pub(crate) mod tests {
         };
         assert_eq!(v.len(), 4);
         assert!(v.iter().all(|x| (-1.0..=1.0).contains(x)));
+    }
+
+    #[test]
+    fn tanh_gaussian_log_prob_matches_the_sampler() {
+        tch::manual_seed(3);
+        let mean = Tensor::randn([4, 5, 2], (Kind::Float, Device::Cpu));
+        let log_std = Tensor::randn([4, 5, 2], (Kind::Float, Device::Cpu)) * 0.5 - 0.5;
+        let noise = Tensor::randn([4, 5, 2], (Kind::Float, Device::Cpu));
+        let (a, want) = tanh_gaussian_sample(&mean, &log_std, &noise);
+        let got = tanh_gaussian_log_prob(&mean, &log_std, &a);
+        let err = (got - want).abs().max().double_value(&[]);
+        assert!(err < 1e-2, "max |log pi difference| {err}");
+        // Saturated f32 actions (exactly +-1) stay finite.
+        let edge = Tensor::from_slice(&[1.0f32, -1.0]).view([1, 2]);
+        let lp = tanh_gaussian_log_prob(
+            &mean.narrow(0, 0, 1).narrow(1, 0, 1).view([1, 2]),
+            &log_std.narrow(0, 0, 1).narrow(1, 0, 1).view([1, 2]),
+            &edge,
+        );
+        assert!(lp.double_value(&[0]).is_finite());
+    }
+
+    #[test]
+    fn filtered_bc_raises_the_log_prob_of_kept_replayed_actions() {
+        for discrete in [true, false] {
+            let (mut learner, mut venv) = tiny_learner(2);
+            learner.collect(&mut venv).unwrap();
+            let trajs: Vec<&Trajectory> = learner.replay.trajectories.iter().collect();
+            let mut rng = ChaCha8Rng::seed_from_u64(0);
+            let mut cfg = learner.cfg.clone();
+            cfg.entropy_coef = 0.0;
+            let (batch, net, target, vs) = if discrete {
+                let batch = make_batch(&trajs, &cfg, &learner.spec, &mut rng, Device::Cpu);
+                let vs = nn::VarStore::new(Device::Cpu);
+                let net = EppoNet::new(vs.root(), &cfg, &learner.spec).unwrap();
+                let tvs = nn::VarStore::new(Device::Cpu);
+                let target = EppoNet::new(tvs.root(), &cfg, &learner.spec).unwrap();
+                (batch, net, target, vs)
+            } else {
+                // The same steps with a 2-D action in [-1, 1] per step.
+                let spec = NetSpec {
+                    n_actions: None,
+                    act_low: vec![-1.0, -1.0],
+                    act_high: vec![1.0, 1.0],
+                    ..learner.spec.clone()
+                };
+                let owned: Vec<Trajectory> = trajs
+                    .iter()
+                    .map(|t| {
+                        let mut t = (*t).clone();
+                        t.actions = (0..t.len() * 2)
+                            .map(|i| (i as f32 * 0.7).sin() * 0.9)
+                            .collect();
+                        t.action_idx.clear();
+                        t
+                    })
+                    .collect();
+                let refs: Vec<&Trajectory> = owned.iter().collect();
+                let batch = make_batch(&refs, &cfg, &spec, &mut rng, Device::Cpu);
+                let vs = nn::VarStore::new(Device::Cpu);
+                let net = EppoNet::new(vs.root(), &cfg, &spec).unwrap();
+                let tvs = nn::VarStore::new(Device::Cpu);
+                let target = EppoNet::new(tvs.root(), &cfg, &spec).unwrap();
+                (batch, net, target, vs)
+            };
+            // The BC term alone: Lp(bc = 1) - Lp(bc = 0) under the same noise.
+            let bc_term = || {
+                let mut with = cfg.clone();
+                with.bc_coef = 1.0;
+                tch::manual_seed(0);
+                let (_, _, a, ..) = losses(&net, &target, &batch, 0.0, &with).unwrap();
+                tch::manual_seed(0);
+                let (_, _, b, ..) = losses(&net, &target, &batch, 0.0, &cfg).unwrap();
+                a - b
+            };
+            let first = bc_term().double_value(&[]);
+            let mut opt = Adam::new(
+                &vs,
+                AdamConfig {
+                    lr: 1e-2,
+                    beta1: 0.9,
+                    beta2: 0.99,
+                    eps: 1e-8,
+                    grad_clip: None,
+                },
+            );
+            for _ in 0..30 {
+                opt.backward_step(&bc_term());
+            }
+            let last = bc_term().double_value(&[]);
+            assert!(
+                last < first - 1e-3,
+                "discrete {discrete}: BC term {first} -> {last} (-mean keep * log pi must fall)"
+            );
+        }
+    }
+
+    #[test]
+    fn n_step_targets_sum_rewards_until_the_bootstrap_stops() {
+        let t = |v: &[f32]| Tensor::from_slice(v).view([1, v.len() as i64]);
+        // Steps 0..5: reward at step 2 (terminal: no bootstrap past it), then
+        // a step 3 without a target of its own (truncated), then 4 and 5.
+        let r = t(&[0.0, 0.0, 1.0, 0.0, 0.0, 2.0]);
+        let boot = t(&[1.0, 1.0, 0.0, 1.0, 1.0, 0.0]);
+        let valid = t(&[1.0, 1.0, 1.0, 0.0, 1.0, 1.0]);
+        let v_next = t(&[10.0, 20.0, 30.0, 40.0, 50.0, 60.0]);
+        let g = 0.5;
+        let y1 = to_vec(&n_step_targets(&r, &boot, &valid, &v_next, g, 1));
+        assert_eq!(y1, vec![5.0, 10.0, 1.0, 20.0, 25.0, 2.0]);
+        let y3 = to_vec(&n_step_targets(&r, &boot, &valid, &v_next, g, 3));
+        // 0: 0 + g (0 + g (1)) = 0.25; 1: 0 + g 1 = 0.5; 2: 1;
+        // 3: r3 + g [valid 4] y(2)_4 = 0 + g (0 + g 2) = 0.5;
+        // 4: 0 + g 2 = 1; 5: 2.
+        assert_eq!(y3, vec![0.25, 0.5, 1.0, 0.5, 1.0, 2.0]);
+        // Step 2 bootstraps into step 3, which has no target: one-step there.
+        let boot2 = t(&[1.0, 1.0, 1.0, 0.0, 1.0, 0.0]);
+        let y2 = to_vec(&n_step_targets(&r, &boot2, &valid, &v_next, g, 2));
+        // 1: 0 + g y(1)_2 = g (1 + g 30) = 8; 2: 1 + g V'_3 (step 3 has no target) = 1 + 15.
+        assert_eq!(y2[1], 8.0);
+        assert_eq!(y2[2], 16.0);
     }
 
     #[test]
