@@ -144,6 +144,9 @@ pub struct AdConfig {
     pub ctg_scale: f32,
     /// Fraction of the tasks whose histories are held out for a validation loss.
     pub val_fraction: f64,
+    /// What the CTG in a token says (module docs: conditioning).
+    #[serde(default)]
+    pub ctg_label: CtgLabel,
     /// Fraction of the training tasks (those not held out) whose histories
     /// are trained on: the dataset-size ablation (paper Figure 6c).
     #[serde(default = "default_train_fraction")]
@@ -164,6 +167,19 @@ pub struct AdConfig {
     /// libtorch intra-op threads; 0 keeps libtorch's default (one per core).
     #[serde(default)]
     pub torch_threads: i32,
+}
+
+/// What a training token's CTG says.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "kebab-case")]
+pub enum CtgLabel {
+    /// The cost the episode still received (the paper's cost-to-go).
+    #[default]
+    Hindsight,
+    /// The history's cost limit minus the cost received so far in the
+    /// episode: the budget the source learner was held to, known in every
+    /// phase of its learning, as the user's budget is at test time.
+    Budget,
 }
 
 fn default_keep_checkpoints() -> usize {
@@ -406,18 +422,29 @@ fn action_part(spec: &AdSpec, h: &History, t: usize, out: &mut [f32]) {
     }
 }
 
-/// RTG and CTG labels of every step: what is still to come in its episode,
-/// including the step's own reward and cost.
-pub fn to_go(h: &History) -> (Vec<f32>, Vec<f32>) {
+/// RTG and CTG labels of every step. RTG is what is still to come in its
+/// episode, including the step's own reward. CTG is, with
+/// [`CtgLabel::Hindsight`], the cost still to come likewise; with
+/// [`CtgLabel::Budget`], the history's cost limit minus the cost already
+/// received in the episode, floored at 0.
+pub fn to_go(h: &History, ctg_label: CtgLabel) -> (Vec<f32>, Vec<f32>) {
     let mut rtg = vec![0.0; h.len()];
     let mut ctg = vec![0.0; h.len()];
     for ep in h.episodes() {
-        let (mut r, mut c) = (0.0, 0.0);
-        for t in ep.rev() {
+        let mut r = 0.0;
+        let mut c = 0.0;
+        for t in ep.clone().rev() {
             r += h.rewards[t];
             c += h.costs[t];
             rtg[t] = r;
             ctg[t] = c;
+        }
+        if ctg_label == CtgLabel::Budget {
+            let mut spent = 0.0;
+            for t in ep {
+                ctg[t] = (h.cost_limit - spent).max(0.0);
+                spent += h.costs[t];
+            }
         }
     }
     (rtg, ctg)
@@ -457,7 +484,7 @@ impl TokenSet {
         let histories = histories
             .iter()
             .map(|h| {
-                let (rtg, ctg) = to_go(h);
+                let (rtg, ctg) = to_go(h, cfg.ctg_label);
                 let episodes = h.episodes();
                 let mut start = vec![false; h.len()];
                 for ep in &episodes {
@@ -1854,7 +1881,7 @@ mod tests {
     fn to_go_labels_count_what_is_still_to_come() {
         let data = tiny_data();
         let h = &data.histories[0];
-        let (rtg, ctg) = to_go(h);
+        let (rtg, ctg) = to_go(h, CtgLabel::Hindsight);
         let eps = h.episodes();
         let e = &eps[0];
         let ret: f32 = h.rewards[e.clone()].iter().sum();
@@ -1863,6 +1890,12 @@ mod tests {
         assert_eq!(ctg[e.start], cost);
         assert_eq!(rtg[e.end - 1], h.rewards[e.end - 1]);
         assert_eq!(ctg[e.end - 1], h.costs[e.end - 1]);
+        // Budget labels: the limit left before each step, never below 0.
+        let mut h = history_of(&[4, 3]);
+        h.costs = vec![1.0, 1.0, 0.0, 1.0, 1.0, 0.0, 0.0];
+        h.cost_limit = 1.5;
+        let (_, ctg) = to_go(&h, CtgLabel::Budget);
+        assert_eq!(ctg, vec![1.5, 0.5, 0.0, 0.0, 1.5, 0.5, 0.5]);
     }
 
     #[test]
