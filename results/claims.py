@@ -42,7 +42,8 @@ def load(folders):
             r = json.loads(f.read_text())
             if not all(k in r for k in ("env", "method", "protocol", "summary")):
                 continue
-            reports[(r["env"], r["method"], r["protocol"])] = (f, r)
+            # Several checkpoints of one method are told apart by their --label.
+            reports[(r["env"], r["method"], r.get("label", ""), r["protocol"])] = (f, r)
     return reports
 
 
@@ -117,11 +118,12 @@ def main(folders):
     reports = load(folders)
     if not reports:
         sys.exit(f"no eval reports in {folders}")
-    for (env, method, protocol), (f, r) in sorted(reports.items()):
+    for (env, method, label, protocol), (f, r) in sorted(reports.items()):
         s = r["summary"]
         t = s["trend"]
         k = r["episodes"]
-        head = f"{env} {method} {protocol} (K={k}, {len(r['result']['conditions'])} conditions, {r['tasks']} tasks; {f.name})"
+        name = f"{method} [{label}]" if label else method
+        head = f"{env} {name} {protocol} (K={k}, {len(r['result']['conditions'])} conditions, {r['tasks']} tasks; {f.name})"
         print(head)
         gain, drop = t["return_gain"], t["cost_drop"]
         print(f"  return first {t['window']} eps {fmt(t['first_return'])} -> last {fmt(t['last_return'])}; "
@@ -146,6 +148,16 @@ def main(folders):
                   f"return slope {rs:+.4f} ± {rse:.4f} (> 3 s.e.: {'PASS' if rs > 3 * rse else 'FAIL'}); "
                   f"revisit {rev:.3f} (>= 0.9: {'PASS' if rev >= 0.9 else 'FAIL'}); discovery {pooled_rate(r, False):.3f}; "
                   f"within budget at episode K {within:.3f} (>= 0.9: {'PASS' if within >= 0.9 else 'FAIL'})")
+        if method == "Ad" and protocol == "figure1" and k > 1:
+            # Issue 11's targets for the supervised learner.
+            rs, rse = per_episode_slopes(r, "returns")
+            cs, cse = per_episode_slopes(r, "costs")
+            rnd = reports.get((env, "Random", "", "figure1"))
+            rnd_cost = rnd[1]["summary"]["trend"]["last_cost"]["mean"] if rnd else float("nan")
+            print(f"  issue 11: return slope {rs:+.4f} ± {rse:.4f} (> 3 s.e.: {'PASS' if rs > 3 * rse else 'FAIL'}); "
+                  f"cost slope {cs:+.4f} ± {cse:.4f} (< 0: {'PASS' if cs < 0 else 'FAIL'}); last-window cost "
+                  f"{t['last_cost']['mean']:.3f} vs random {rnd_cost:.3f} ({'PASS' if t['last_cost']['mean'] < rnd_cost else 'FAIL'}); "
+                  f"discovery {pooled_rate(r, False):.3f}, revisit {pooled_rate(r, True):.3f}")
         slope = s.get("total_return_slope")
         if protocol == "sweep" and slope:
             within = abs(slope["mean"]) <= 2 * slope["se"]
@@ -164,14 +176,14 @@ def main(folders):
         if r.get("parameters_checksum"):
             a, b = r["parameters_checksum"]
             print(f"  parameters frozen: {'yes' if a == b else 'NO'} (checksum {a:#x})")
-    for env in ("darkroom", "point", "car"):
-        e, a = reports.get((env, "Eppo", "figure1")), reports.get((env, "Ad", "figure1"))
-        if e and a:
+    for (env, method, label, protocol), a in sorted(reports.items()):
+        e = reports.get((env, "Eppo", "", "figure1"))
+        if method == "Ad" and protocol == "figure1" and e:
             m = min(e[1]["episodes"], a[1]["episodes"])
             me, se_e = mean_se(early_returns(e[1], m))
             ma, se_a = mean_se(early_returns(a[1], m))
             diff, se = me - ma, math.sqrt(se_e ** 2 + se_a ** 2)
-            print(f"{env}: mean return over episodes 1..{m}: EPPO {me:.3f} ± {se_e:.3f}, AD {ma:.3f} ± {se_a:.3f}; "
+            print(f"{env}: mean return over episodes 1..{m}: EPPO {me:.3f} ± {se_e:.3f}, AD{' [' + label + ']' if label else ''} {ma:.3f} ± {se_a:.3f}; "
                   f"EPPO - AD {diff:.3f} ± {se:.3f}: {'PASS' if diff > 2 * se else 'FAIL'}")
 
 
