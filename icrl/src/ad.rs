@@ -1714,6 +1714,24 @@ mod tests {
         cfg
     }
 
+    /// An empty temporary folder named after `what` and this process.
+    fn fresh_dir(what: &str) -> PathBuf {
+        let dir = std::env::temp_dir().join(format!("icrl-ad-{what}-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&dir);
+        dir
+    }
+
+    /// A fresh training run of `cfg` on `data` into `dir`.
+    fn request<'a>(cfg: &'a AdConfig, data: &'a HistoryFile, dir: &'a Path) -> TrainRequest<'a> {
+        TrainRequest {
+            cfg,
+            data,
+            dataset_path: Path::new("tiny.h5"),
+            run_dir: dir,
+            resume: None,
+        }
+    }
+
     fn tiny_data() -> HistoryFile {
         let mut d = DatasetConfig::paper(EnvName::DarkRoom, 2, 11);
         d.source = Source::NoisyOptimal;
@@ -1831,16 +1849,8 @@ mod tests {
         let data = generate(&d, &|_| {}).unwrap().file;
         let mut cfg = tiny_cfg();
         (cfg.updates, cfg.val_fraction, cfg.train_fraction) = (2, 0.25, 0.5);
-        let dir = std::env::temp_dir().join(format!("icrl-ad-frac-{}", std::process::id()));
-        let _ = fs::remove_dir_all(&dir);
-        let req = TrainRequest {
-            cfg: &cfg,
-            data: &data,
-            dataset_path: Path::new("tiny.h5"),
-            run_dir: &dir,
-            resume: None,
-        };
-        let s = train(&req, &mut |_| {}, &mut |_| {}).unwrap();
+        let dir = fresh_dir("frac");
+        let s = train(&request(&cfg, &data, &dir), &mut |_| {}, &mut |_| {}).unwrap();
         // 8 tasks: 2 held out; half of the other 6 trained on; 2 limits each.
         assert_eq!((s.train_histories, s.val_histories), (6, 4));
         let _ = fs::remove_dir_all(&dir);
@@ -1902,15 +1912,8 @@ mod tests {
     fn supervised_loss_falls_and_the_agent_acts_from_a_checkpoint() {
         let data = tiny_data();
         let cfg = tiny_cfg();
-        let dir = std::env::temp_dir().join(format!("icrl-ad-test-{}", std::process::id()));
-        let _ = fs::remove_dir_all(&dir);
-        let req = TrainRequest {
-            cfg: &cfg,
-            data: &data,
-            dataset_path: Path::new("tiny.h5"),
-            run_dir: &dir,
-            resume: None,
-        };
+        let dir = fresh_dir("test");
+        let req = request(&cfg, &data, &dir);
         let mut logs = Vec::new();
         let s = train(&req, &mut |m| logs.push(m.clone()), &mut |_| {}).unwrap();
         assert_eq!(s.updates, 120);

@@ -123,6 +123,22 @@ pub struct LoadedAgent {
 }
 
 impl LoadedAgent {
+    /// The uniform random policy over `space`, seeded.
+    pub fn random(space: safety_envs::Space, seed: u64) -> Self {
+        LoadedAgent {
+            method: Method::Random,
+            agent: Box::new(RandomAgent::new(space, seed)),
+            checkpoint: None,
+            pretrain_tasks: None,
+            budget_range: None,
+            parameters: Vec::new(),
+            context: None,
+            physics_steps_per_action: None,
+            note: String::new(),
+            label: None,
+        }
+    }
+
     /// The name in legends: the label, else the method.
     fn name(&self) -> String {
         self.label
@@ -687,18 +703,7 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
         },
     )?;
     if opts.random {
-        agents.push(LoadedAgent {
-            method: Method::Random,
-            agent: Box::new(RandomAgent::new(probe.action_space(), opts.eval_seed)),
-            checkpoint: None,
-            pretrain_tasks: None,
-            budget_range: None,
-            parameters: Vec::new(),
-            context: None,
-            physics_steps_per_action: None,
-            note: String::new(),
-            label: None,
-        });
+        agents.push(LoadedAgent::random(probe.action_space(), opts.eval_seed));
     }
     check_output_dir(&opts.out)?;
     let d = env_defaults(opts.env);
@@ -953,17 +958,11 @@ mod tests {
     #[test]
     fn labels_name_checkpoints_of_one_method_apart() {
         let probe = make_env(EnvName::DarkRoom, &EnvOptions::default()).unwrap();
+        // Naming reads only the method and the label.
         let agent = |label: Option<&str>| LoadedAgent {
             method: Method::Ad,
-            agent: Box::new(RandomAgent::new(probe.action_space(), 0)),
-            checkpoint: None,
-            pretrain_tasks: None,
-            budget_range: None,
-            parameters: Vec::new(),
-            context: None,
-            physics_steps_per_action: None,
-            note: String::new(),
             label: label.map(String::from),
+            ..LoadedAgent::random(probe.action_space(), 0)
         };
         assert_eq!(
             (agent(None).name(), agent(None).stem()),
