@@ -1170,7 +1170,7 @@ fn losses(
                 let v = (&pi.detach() * &q_mean).sum_dim_intlist(-1, false, Kind::Float); // (B, L)
                 let keep = (q_data - v).gt(0.0).to_kind(Kind::Float); // (B, L)
                 let logp_data = logp.gather(2, &idx, false).squeeze_dim(2); // (B, L)
-                objective = objective - keep * logp_data * cfg.bc_coef;
+                objective -= keep * logp_data * cfg.bc_coef;
             }
             (
                 q_taken,
@@ -1214,7 +1214,7 @@ fn losses(
                     (q_data - v).gt(0.0).to_kind(Kind::Float)
                 });
                 let logp_data = tanh_gaussian_log_prob(&mean, &log_std, &batch.actions); // (B, L)
-                objective = objective - keep * logp_data * cfg.bc_coef;
+                objective -= keep * logp_data * cfg.bc_coef;
             }
             (
                 q_taken,
@@ -2718,7 +2718,7 @@ pub(crate) mod tests {
         let mut first = None;
         let mut last = (0.0, 0.0);
         for _ in 0..300 {
-            let (lv, lc, _, ..) =
+            let (lv, lc, ..) =
                 losses(&learner.net, &learner.target, &batch, 0.0, &learner.cfg).unwrap();
             let now = (lv.double_value(&[]), lc.double_value(&[]));
             first.get_or_insert(now);
