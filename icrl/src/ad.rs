@@ -272,12 +272,7 @@ impl AdConfig {
             ("episode_stride_max", self.episode_stride_max as i128),
         ])
         .map_err(AdError::Config)?;
-        if !(0..=1024).contains(&self.torch_threads) {
-            return Err(AdError::Config(format!(
-                "torch_threads = {}: must be in [0, 1024] (0 keeps libtorch's default)",
-                self.torch_threads
-            )));
-        }
+        crate::guard::check_torch_threads(self.torch_threads).map_err(AdError::Config)?;
         check_numbers(&[
             ("learning_rate", self.learning_rate, Range::UNIT_OPEN_LOW),
             ("beta1", self.beta1, Range::UNIT_OPEN_HIGH),

@@ -228,6 +228,13 @@ pub fn generate(
                 // Small networks: one libtorch thread per worker beats sharing.
                 tch::set_num_threads(1);
                 let run_seed = splitmix64(cfg.seed ^ splitmix64(j as u64));
+                // Subsampled in the worker: only the kept episodes are held.
+                let keep = |h: History| match cfg.keep_episodes {
+                    Some(k) => {
+                        h.keep_episodes(&log_spaced(h.episodes().len(), k), obs_dim, action_dim)
+                    }
+                    None => h,
+                };
                 match cfg.source {
                     Source::PpoLagrangian => {
                         let run = ppo_lagrangian::train(
@@ -238,7 +245,7 @@ pub fn generate(
                             run_seed,
                             &mut |n| progress(n),
                         )?;
-                        Ok((run.history, run.metrics))
+                        Ok((keep(run.history), run.metrics))
                     }
                     Source::NoisyOptimal => {
                         let mut env = make()?;
@@ -251,7 +258,7 @@ pub fn generate(
                             run_seed,
                         )?;
                         progress(cfg.steps);
-                        Ok((h, Vec::new()))
+                        Ok((keep(h), Vec::new()))
                     }
                 }
             })
@@ -261,10 +268,6 @@ pub fn generate(
     let mut metrics = Vec::with_capacity(jobs.len());
     for r in results {
         let (h, m) = r?;
-        let h = match cfg.keep_episodes {
-            Some(k) => h.keep_episodes(&log_spaced(h.episodes().len(), k), obs_dim, action_dim),
-            None => h,
-        };
         histories.push(h);
         metrics.push(m);
     }

@@ -266,12 +266,7 @@ impl EppoConfig {
             ),
         ])
         .or_else(bad)?;
-        if !(0..=1024).contains(&self.torch_threads) {
-            return bad(format!(
-                "torch_threads = {}: must be in [0, 1024] (0 keeps libtorch's default)",
-                self.torch_threads
-            ));
-        }
+        crate::guard::check_torch_threads(self.torch_threads).or_else(bad)?;
         check_numbers(&[
             ("ctg_min", f64::from(self.ctg_min), Range::NON_NEGATIVE),
             ("ctg_max", f64::from(self.ctg_max), Range::POSITIVE),
@@ -1192,9 +1187,8 @@ fn losses(
             // trajectory encoding: the actor loss moves only the actor (and the
             // encoder through the actor's input).
             let hd = h.detach();
-            let q = net
-                .critic_sa(&net.critic, &hd, &a_hat, true)
-                .amin(-1, false); // (B, L)
+            let q_hat = net.critic_sa(&net.critic, &hd, &a_hat, true); // (B, L, C)
+            let q = q_hat.amin(-1, false); // (B, L)
             let qc =
                 net.critic_sa(&net.cost_critic, &hd, &a_hat, true)
                     .mean_dim(-1, false, Kind::Float); // (B, L)
@@ -1206,11 +1200,7 @@ fn losses(
                 // mean over critics, no gradient anywhere in the filter.
                 let keep = tch::no_grad(|| {
                     let q_data = q_taken.mean_dim(-1, false, Kind::Float); // (B, L)
-                    let v = net.critic_sa(&net.critic, &hd, &a_hat, true).mean_dim(
-                        -1,
-                        false,
-                        Kind::Float,
-                    ); // (B, L)
+                    let v = q_hat.detach().mean_dim(-1, false, Kind::Float); // (B, L)
                     (q_data - v).gt(0.0).to_kind(Kind::Float)
                 });
                 let logp_data = tanh_gaussian_log_prob(&mean, &log_std, &batch.actions); // (B, L)

@@ -98,6 +98,17 @@ pub fn check_numbers(items: &[(&str, f64, Range)]) -> Result<(), String> {
     Ok(())
 }
 
+/// Checks a `torch_threads` setting: 0 (libtorch's default) to 1024.
+pub fn check_torch_threads(n: i32) -> Result<(), String> {
+    if (0..=1024).contains(&n) {
+        Ok(())
+    } else {
+        Err(format!(
+            "torch_threads = {n}: must be in [0, 1024] (0 keeps libtorch's default)"
+        ))
+    }
+}
+
 /// Checks that every count is at least 1; the error names the first that is not.
 pub fn check_counts(items: &[(&str, i128)]) -> Result<(), String> {
     for &(name, value) in items {

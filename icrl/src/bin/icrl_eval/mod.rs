@@ -111,9 +111,6 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
         command: std::env::args().collect::<Vec<_>>().join(" "),
     };
     // Bad options and an unwritable output folder fail before any loading.
-    opts.validate()?;
-    eval_cmd::check_output_dir(&opts.out)?;
-    tch::set_num_threads(threads as i32);
     if !args.label.is_empty() && args.label.len() != args.checkpoint.len() {
         anyhow::bail!(
             "--label given {} times for {} --checkpoint: give one label per checkpoint, in the same order",
@@ -121,6 +118,9 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
             args.checkpoint.len()
         );
     }
+    opts.validate()?;
+    eval_cmd::check_output_dir(&opts.out)?;
+    tch::set_num_threads(threads as i32);
     let mut agents = args
         .checkpoint
         .iter()
