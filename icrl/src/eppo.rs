@@ -1840,6 +1840,8 @@ pub struct PretrainReport {
     pub updates: u64,
     pub env_steps: u64,
     pub lambda: f64,
+    /// A uniformly random policy on the pretraining tasks, for scale.
+    pub random: crate::run_summary::ReturnCost,
 }
 
 /// Algorithm 1: collect rounds of trajectories, update, checkpoint, log.
@@ -1861,16 +1863,15 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
     let cfg = learner.cfg.clone();
     run.write_config(&toml::to_string(&cfg).map_err(|e| EppoError::Config(e.to_string()))?)?;
     let mut metrics = MetricsWriter::open(&run.metrics_path())?;
+    let env_options = EnvOptions {
+        max_episode_steps: Some(cfg.max_episode_steps),
+        physics_steps_per_action: cfg.physics_steps_per_action,
+    };
+    // The scale the user reads progress against (seconds, even for Car).
+    let random = crate::run_summary::random_policy(opts.env, &env_options, 100, cfg.seed)?;
+    let mut recent = crate::run_summary::RecentRounds::new(50);
     let envs = (0..cfg.n_envs)
-        .map(|_| {
-            make_env(
-                opts.env,
-                &EnvOptions {
-                    max_episode_steps: Some(cfg.max_episode_steps),
-                    physics_steps_per_action: cfg.physics_steps_per_action,
-                },
-            )
-        })
+        .map(|_| make_env(opts.env, &env_options))
         .collect::<Result<Vec<_>, _>>()?;
     let mut venv = VecEnv::new(envs, cfg.env_threads, true)?;
     let bar = if opts.progress {
@@ -1961,14 +1962,16 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
             "charts/env_steps_per_s": sps,
         });
         metrics.write(&record)?;
-        let line = format!(
-            "{ups:.2} upd/s  lambda {:.3}  return {:.2}  cost {:.2}  Lv {:.3} Lc {:.3} Lp {:.3}",
-            learner.lambda,
+        recent.push(
             round.mean_return,
             round.mean_cost,
-            avg(|s| s.value_loss),
-            avg(|s| s.cost_value_loss),
-            avg(|s| s.policy_loss)
+            round.first_return,
+            round.last_return,
+        );
+        let line = format!(
+            "{}  lambda {:.3}  {ups:.2} upd/s",
+            recent.progress_line(random),
+            learner.lambda
         );
         if log_lines && last_log_line.elapsed().as_secs() >= 30 {
             eprintln!(
@@ -2004,6 +2007,7 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
         updates: learner.updates,
         env_steps: learner.env_steps,
         lambda: learner.lambda,
+        random,
     })
 }
 

@@ -3,6 +3,7 @@
 //! against a uniformly random policy's on the same task distribution), and the
 //! exact command that evaluates its checkpoint.
 
+use std::collections::VecDeque;
 use std::path::Path;
 
 use rand::{Rng, SeedableRng};
@@ -103,6 +104,60 @@ pub fn random_policy(
     })
 }
 
+/// The last rounds of a training run, averaged for its progress line: one
+/// round's 8 trajectories are too few to tell learning from noise.
+#[derive(Clone, Debug)]
+pub struct RecentRounds {
+    window: usize,
+    /// Per round: mean return, mean cost, first and last episode's return.
+    rounds: VecDeque<[f64; 4]>,
+}
+
+impl RecentRounds {
+    pub fn new(window: usize) -> Self {
+        RecentRounds {
+            window: window.max(1),
+            rounds: VecDeque::new(),
+        }
+    }
+
+    /// Adds a round; one that finished no episode (NaN means) is skipped.
+    pub fn push(&mut self, mean_return: f64, mean_cost: f64, first_return: f64, last_return: f64) {
+        let round = [mean_return, mean_cost, first_return, last_return];
+        if round.iter().any(|v| !v.is_finite()) {
+            return;
+        }
+        if self.rounds.len() == self.window {
+            self.rounds.pop_front();
+        }
+        self.rounds.push_back(round);
+    }
+
+    /// What the user reads while training runs: return and cost against the
+    /// random policy's, and whether the last episode of a trajectory beats
+    /// its first (learning in context).
+    pub fn progress_line(&self, random: ReturnCost) -> String {
+        if self.rounds.is_empty() {
+            return format!(
+                "no episode yet (random policy: return {:.3}, cost {:.2})",
+                random.episodic_return, random.episodic_cost
+            );
+        }
+        let n = self.rounds.len() as f64;
+        let mean = |i: usize| self.rounds.iter().map(|r| r[i]).sum::<f64>() / n;
+        format!(
+            "return {:.3} (random {:.3}; first episode {:.3} -> last {:.3})  cost {:.2} (random {:.2})  over the last {} rounds",
+            mean(0),
+            random.episodic_return,
+            mean(2),
+            mean(3),
+            mean(1),
+            random.episodic_cost,
+            self.rounds.len()
+        )
+    }
+}
+
 /// The command that evaluates `checkpoint` on `env` (held-out edge tasks,
 /// Figure 1, with a random policy for scale).
 pub fn eval_command(env: EnvName, checkpoint: &Path) -> String {
@@ -137,6 +192,24 @@ mod tests {
         assert!((t.first.episodic_cost - 9.5).abs() < 1e-12, "{t:?}");
         assert!(metrics_trend(&dir.join("none.jsonl"), 0.1).is_none());
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn progress_line_averages_the_last_rounds_against_the_random_policy() {
+        let random = ReturnCost {
+            episodic_return: 0.05,
+            episodic_cost: 3.0,
+        };
+        let mut recent = RecentRounds::new(2);
+        assert!(recent.progress_line(random).starts_with("no episode yet"));
+        recent.push(9.0, 9.0, 9.0, 9.0);
+        recent.push(0.2, 4.0, 0.1, 0.3);
+        recent.push(f64::NAN, f64::NAN, f64::NAN, f64::NAN);
+        recent.push(0.4, 2.0, 0.3, 0.5);
+        assert_eq!(
+            recent.progress_line(random),
+            "return 0.300 (random 0.050; first episode 0.200 -> last 0.400)  cost 3.00 (random 3.00)  over the last 2 rounds"
+        );
     }
 
     #[test]

@@ -239,15 +239,9 @@ fn pretrain(args: PretrainArgs) -> anyhow::Result<()> {
 /// late in the run against a random policy on the same task distribution,
 /// then the checkpoint and the command that evaluates it.
 fn print_learning_summary(env: &str, report: &icrl::eppo::PretrainReport) -> anyhow::Result<()> {
-    use icrl::run_summary::{eval_command, metrics_trend, random_policy};
+    use icrl::run_summary::{eval_command, metrics_trend};
     let env: safety_envs::EnvName = env.parse()?;
-    let config = std::fs::read_to_string(report.run_dir.join("config.toml"))?;
-    let cfg: icrl::eppo::EppoConfig = toml::from_str(&config)?;
-    let options = safety_envs::EnvOptions {
-        max_episode_steps: Some(cfg.max_episode_steps),
-        physics_steps_per_action: cfg.physics_steps_per_action,
-    };
-    let random = random_policy(env, &options, 200, cfg.seed)?;
+    let random = report.random;
     match metrics_trend(&report.run_dir.join("metrics.jsonl"), 0.1) {
         Some(t) => println!(
             "learning ({} collection rounds): episodic return {:.3} in the first 10% -> {:.3} in the last 10% \
