@@ -314,11 +314,10 @@ pub fn conditions(
                 .map(|ctg| Conditioning::Budget { ctg })
                 .collect()
         }
-        (Method::Eppo, true) => d
-            .budget_grid
-            .iter()
-            .map(|&b| range.check(b).map(|ctg| Conditioning::Budget { ctg }))
-            .collect::<Result<Vec<_>, _>>()?,
+        (Method::Eppo, true) => sweep_grid(&d.budget_grid, range)
+            .into_iter()
+            .map(|ctg| Conditioning::Budget { ctg })
+            .collect(),
         (Method::Ad, false) => match &opts.budgets {
             Some(b) => b
                 .iter()
@@ -351,6 +350,25 @@ pub fn conditions(
         ));
     }
     Ok(conds)
+}
+
+/// EPPO's sweep: the environment's grid where it lies inside the budgets the
+/// policy was pretrained on; when fewer than 5 of its points do (a preset
+/// with its own range, e.g. Point's [2, 20] against the paper's [10, 50]),
+/// 9 budgets evenly spread over that range instead.
+fn sweep_grid(grid: &[f32], range: BudgetRange) -> Vec<f32> {
+    let inside: Vec<f32> = grid
+        .iter()
+        .copied()
+        .filter(|&b| range.check(b).is_ok())
+        .collect();
+    if inside.len() >= 5 {
+        return inside;
+    }
+    let n = 9;
+    (0..n)
+        .map(|i| range.low + (range.high - range.low) * i as f32 / (n - 1) as f32)
+        .collect()
 }
 
 fn io_err(path: &Path) -> impl Fn(std::io::Error) -> EvalCmdError + '_ {
@@ -1037,6 +1055,33 @@ mod tests {
             .to_string();
         assert!(e.contains("no eval reports"), "{e}");
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn eppo_sweep_stays_inside_the_pretrained_budget_range() {
+        let dir = std::env::temp_dir().join(format!("icrl-eval-cmd-sweep-{}", std::process::id()));
+        let opts = options(dir);
+        let budgets = |range: BudgetRange| -> Vec<f32> {
+            conditions(Method::Eppo, true, &opts, range)
+                .unwrap()
+                .into_iter()
+                .map(|c| match c {
+                    Conditioning::Budget { ctg } => ctg,
+                    other => panic!("{other:?}"),
+                })
+                .collect()
+        };
+        let paper = env_defaults(EnvName::DarkRoom).budget_range;
+        assert_eq!(budgets(paper), grid(1.0, 15.0, 1.0), "the paper's grid");
+        let narrow = BudgetRange {
+            low: 2.0,
+            high: 20.0,
+        };
+        assert_eq!(
+            sweep_grid(&env_defaults(EnvName::Point).budget_grid, narrow),
+            [2.0, 4.25, 6.5, 8.75, 11.0, 13.25, 15.5, 17.75, 20.0],
+            "Point's quick range holds only 10, 15, 20 of the paper's grid"
+        );
     }
 
     #[test]
