@@ -21,13 +21,24 @@ pub struct ReturnCost {
 
 /// The run's learning curve, summarised: the mean of `episodic_return` and
 /// `episodic_cost` over the first and over the last `fraction` of the
-/// collection rounds in `metrics.jsonl` (at least one round each).
+/// collection rounds in `metrics.jsonl` (at least two rounds each where the run has two).
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Trend {
     pub first: ReturnCost,
     pub last: ReturnCost,
     /// Rounds with episodes that the means cover.
     pub rounds: usize,
+    /// Standard error of the last part's mean return over its rounds (NaN
+    /// with a single round).
+    pub last_return_se: f64,
+}
+
+impl Trend {
+    /// Whether the run's late return beats `random`'s by more than two
+    /// standard errors: one lucky round is not learning.
+    pub fn beats(&self, random: ReturnCost) -> bool {
+        self.last.episodic_return - random.episodic_return > 2.0 * self.last_return_se
+    }
 }
 
 /// Reads `metrics.jsonl` (records without an `episodic_return` number are
@@ -47,15 +58,24 @@ pub fn metrics_trend(metrics: &Path, fraction: f64) -> Option<Trend> {
     if rows.is_empty() {
         return None;
     }
-    let k = ((rows.len() as f64 * fraction).ceil() as usize).clamp(1, rows.len());
+    // At least two rounds where there are two, so that the spread is known.
+    let k = ((rows.len() as f64 * fraction).ceil() as usize).clamp(2.min(rows.len()), rows.len());
     let mean = |part: &[ReturnCost]| ReturnCost {
         episodic_return: part.iter().map(|r| r.episodic_return).sum::<f64>() / part.len() as f64,
         episodic_cost: part.iter().map(|r| r.episodic_cost).sum::<f64>() / part.len() as f64,
     };
+    let last = &rows[rows.len() - k..];
+    let last_mean = mean(last);
+    let var = last
+        .iter()
+        .map(|r| (r.episodic_return - last_mean.episodic_return).powi(2))
+        .sum::<f64>()
+        / (k as f64 - 1.0);
     Some(Trend {
         first: mean(&rows[..k]),
-        last: mean(&rows[rows.len() - k..]),
+        last: last_mean,
         rounds: rows.len(),
+        last_return_se: (var / k as f64).sqrt(),
     })
 }
 
@@ -190,6 +210,29 @@ mod tests {
         assert!((t.first.episodic_return - 0.05).abs() < 1e-12, "{t:?}");
         assert!((t.last.episodic_return - 0.85).abs() < 1e-12, "{t:?}");
         assert!((t.first.episodic_cost - 9.5).abs() < 1e-12, "{t:?}");
+        // Last two rounds 0.8 and 0.9: standard error 0.05.
+        assert!((t.last_return_se - 0.05).abs() < 1e-9, "{t:?}");
+        let random = |r| ReturnCost {
+            episodic_return: r,
+            episodic_cost: 0.0,
+        };
+        assert!(t.beats(random(0.74)) && !t.beats(random(0.76)));
+        assert_eq!(
+            metrics_trend(&path, 0.01).unwrap(),
+            t,
+            "at least two rounds"
+        );
+        let single = dir.join("single.jsonl");
+        std::fs::write(
+            &single,
+            "{\"episodic_return\": 1.0, \"episodic_cost\": 0.0}\n",
+        )
+        .unwrap();
+        let one = metrics_trend(&single, 0.1).unwrap();
+        assert!(
+            one.last_return_se.is_nan() && !one.beats(random(0.0)),
+            "one round decides nothing"
+        );
         assert!(metrics_trend(&dir.join("none.jsonl"), 0.1).is_none());
         std::fs::remove_dir_all(&dir).unwrap();
     }

@@ -244,19 +244,20 @@ fn print_learning_summary(env: &str, report: &icrl::eppo::PretrainReport) -> any
     let random = report.random;
     match metrics_trend(&report.run_dir.join("metrics.jsonl"), 0.1) {
         Some(t) => println!(
-            "learning ({} collection rounds): episodic return {:.3} in the first 10% -> {:.3} in the last 10% \
+            "learning ({} collection rounds): episodic return {:.3} in the first 10% -> {:.3} ± {:.3} in the last 10% \
              (random policy: {:.3}); episodic cost {:.2} -> {:.2} (random policy: {:.2}){}",
             t.rounds,
             t.first.episodic_return,
             t.last.episodic_return,
+            t.last_return_se,
             random.episodic_return,
             t.first.episodic_cost,
             t.last.episodic_cost,
             random.episodic_cost,
-            if t.last.episodic_return > random.episodic_return {
-                ": it learns, its return is above the random policy's"
+            if t.beats(random) {
+                ": it learns, its return is above the random policy's by more than 2 standard errors"
             } else {
-                ": its return is not above the random policy's yet"
+                ": its return is not clearly above the random policy's yet"
             }
         ),
         None => println!(
