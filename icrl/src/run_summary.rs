@@ -12,6 +12,8 @@ use safety_envs::{
     Action, EnvError, EnvName, EnvOptions, Orientation, Space, make_env, sample_task, spawn_config,
 };
 
+use crate::stats::mean_se;
+
 /// Mean episode return and cost.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct ReturnCost {
@@ -65,17 +67,17 @@ pub fn metrics_trend(metrics: &Path, fraction: f64) -> Option<Trend> {
         episodic_cost: part.iter().map(|r| r.episodic_cost).sum::<f64>() / part.len() as f64,
     };
     let last = &rows[rows.len() - k..];
-    let last_mean = mean(last);
-    let var = last
-        .iter()
-        .map(|r| (r.episodic_return - last_mean.episodic_return).powi(2))
-        .sum::<f64>()
-        / (k as f64 - 1.0);
+    let last_returns: Vec<f64> = last.iter().map(|r| r.episodic_return).collect();
+    // One round has no spread: its error is unknown, not 0.
+    let last_return_se = match mean_se(&last_returns) {
+        Some(m) if m.n >= 2 => m.se,
+        _ => f64::NAN,
+    };
     Some(Trend {
         first: mean(&rows[..k]),
-        last: last_mean,
+        last: mean(last),
         rounds: rows.len(),
-        last_return_se: (var / k as f64).sqrt(),
+        last_return_se,
     })
 }
 
