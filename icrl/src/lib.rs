@@ -12,17 +12,16 @@
 //! - [`guard`]: setting ranges, finite-weight checks and the memory estimate.
 //! - [`stop`]: graceful stop on the first SIGINT/SIGTERM.
 //!
-//! Learners (each one file, read top to bottom):
+//! Learners (each a folder whose `mod.rs` reads top to bottom):
 //! - [`eppo`]: EPPO, safe reinforcement pretraining (Algorithm 1), and its frozen agent.
 //! - [`ppo_lagrangian`]: PPO-Lagrangian, the learner whose histories supervised pretraining distils.
 //! - [`ad`]: safe supervised pretraining (algorithm distillation with RTG and CTG).
 //!
 //! Data and evaluation:
-//! - [`histories`]: learning histories in HDF5 (DSRL-compatible layout).
-//! - [`dataset`]: learning-history datasets (PPO-Lagrangian or noisy optimal) written to HDF5.
-//! - [`eval`]: in-context evaluation on held-out edge-oriented tasks, budget sweeps.
-//! - [`eval_cmd`]: the `eval` command (checkpoints in, JSON/CSV/figures/GIF out).
-//! - [`eval_load`]: loading EPPO and AD checkpoints for evaluation.
+//! - [`data`]: learning histories in HDF5 ([`data::histories`]) and the
+//!   datasets made of them ([`data::dataset`]).
+//! - [`eval`]: in-context evaluation on held-out edge-oriented tasks, budget
+//!   sweeps, and the `eval` command ([`eval::command`], [`eval::load`]).
 //! - [`plots`]: the paper's evaluation figures and animations.
 //! - [`run_summary`]: a finished run's learning trend against a random policy, and its eval command.
 //! - [`stats`]: mean and standard error.
@@ -30,13 +29,10 @@
 pub mod ad;
 pub mod agent;
 pub mod checkpoint;
-pub mod dataset;
+pub mod data;
 pub mod eppo;
 pub mod eval;
-pub mod eval_cmd;
-pub mod eval_load;
 pub mod guard;
-pub mod histories;
 pub mod json_bounds;
 pub mod model;
 pub mod optim;

@@ -10,9 +10,9 @@ use tch::Tensor;
 
 use crate::ad::{self, AdConfig, AdError, TrainRequest};
 use crate::checkpoint::{MANIFEST, Manifest, sha256_file};
-use crate::dataset::{DatasetConfig, Source, generate};
+use crate::data::dataset::{DatasetConfig, Source, generate};
 use crate::eppo::{self, EppoError, Learner, PretrainOptions};
-use crate::histories::HistoryFile;
+use crate::data::histories::HistoryFile;
 
 fn tmp(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("icrl-reliability-{name}-{}", std::process::id()));
@@ -280,7 +280,7 @@ fn eppo_non_finite_values_stop_training_and_are_refused_on_load() {
         e.contains(&format!("weight {name} holds")) && e.contains("NaN"),
         "{e}"
     );
-    let e = crate::eval_load::load_checkpoint(&ckpt, EnvName::DarkRoom)
+    let e = crate::eval::load::load_checkpoint(&ckpt, EnvName::DarkRoom)
         .err()
         .unwrap()
         .to_string();
@@ -323,7 +323,7 @@ fn ad_non_finite_loss_stops_naming_the_last_good_checkpoint() {
     reseal(&step_6);
     let e = ad::AdAgent::load(&dir).err().unwrap().to_string();
     assert!(e.contains(&format!("weight {name} holds")), "{e}");
-    let e = crate::eval_load::load_checkpoint(&dir, EnvName::DarkRoom)
+    let e = crate::eval::load::load_checkpoint(&dir, EnvName::DarkRoom)
         .err()
         .unwrap()
         .to_string();

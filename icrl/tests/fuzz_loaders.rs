@@ -205,7 +205,7 @@ fn mjcf_loader_survives_mutated_models() {
 
 /// A small valid history file, written by the real writer.
 fn history_file(path: &Path) {
-    use icrl::histories::{DatasetInfo, History, HistoryFile, write_histories};
+    use icrl::data::histories::{DatasetInfo, History, HistoryFile, write_histories};
     let spawn = safety_envs::SpawnConfig::darkroom();
     let histories = (0..3)
         .map(|i| {
@@ -380,7 +380,7 @@ fn history_reader_survives_mutated_files() {
             mutate_hdf5(&mut rng, &path)
         };
         ok += usize::from(run_case("history file", case, &desc, || {
-            icrl::histories::read_histories(&path, Some("darkroom"))
+            icrl::data::histories::read_histories(&path, Some("darkroom"))
         }));
         let _ = std::fs::remove_file(&path);
     }
@@ -494,11 +494,11 @@ fn checkpoints(root: &Path) -> (PathBuf, PathBuf, icrl::eppo::EppoConfig) {
     })
     .unwrap()
     .run_dir;
-    let mut d = icrl::dataset::DatasetConfig::paper(EnvName::DarkRoom, 1, 3);
-    d.source = icrl::dataset::Source::NoisyOptimal;
+    let mut d = icrl::data::dataset::DatasetConfig::paper(EnvName::DarkRoom, 1, 3);
+    d.source = icrl::data::dataset::Source::NoisyOptimal;
     d.steps = 300;
     d.cost_limits = vec![0.0];
-    let data = icrl::dataset::generate(&d, &|_| {}).unwrap().file;
+    let data = icrl::data::dataset::generate(&d, &|_| {}).unwrap().file;
     let mut cfg = icrl::ad::AdConfig::preset("darkroom-quick").unwrap();
     cfg.model.n_layers = 1;
     cfg.model.d_model = 8;
@@ -582,7 +582,7 @@ fn checkpoint_loaders_survive_mutated_checkpoints() {
         }
         let desc = format!("{}: {desc}", file.strip_prefix(&root).unwrap().display());
         ok += usize::from(run_case("checkpoint", case, &desc, || {
-            icrl::eval_load::load_checkpoint(&run, EnvName::DarkRoom).map(|_| ())
+            icrl::eval::load::load_checkpoint(&run, EnvName::DarkRoom).map(|_| ())
         }));
         // Resuming reads the optimizer's moments too.
         if !is_ad {

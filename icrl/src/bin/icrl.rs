@@ -101,13 +101,13 @@ fn parse_seed(s: &str) -> Result<u64, String> {
 
 fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
     let source = match args.source.as_str() {
-        "noisy-optimal" => icrl::dataset::Source::NoisyOptimal,
-        _ => icrl::dataset::Source::PpoLagrangian,
+        "noisy-optimal" => icrl::data::dataset::Source::NoisyOptimal,
+        _ => icrl::data::dataset::Source::PpoLagrangian,
     };
     let threads = args
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    let r = icrl::dataset::dataset_command(&icrl::dataset::DatasetCommand {
+    let r = icrl::data::dataset::dataset_command(&icrl::data::dataset::DatasetCommand {
         env: args.env,
         out: args.out,
         tasks: args.tasks,
@@ -343,7 +343,7 @@ fn main() -> ExitCode {
             .map(|f| println!("wrote {}", f.display()))
             .map_err(Into::into),
         Command::PlotHistories { file, out, bins } => {
-            icrl::dataset::plot_histories(&file, &out, bins as usize)
+            icrl::data::dataset::plot_histories(&file, &out, bins as usize)
                 .map(|fs| fs.iter().for_each(|f| println!("wrote {}", f.display())))
                 .map_err(Into::into)
         }

@@ -1,10 +1,10 @@
 //! `icrl eval`: evaluate pretrained checkpoints on held-out edge-oriented
-//! tasks (SPEC section 5). The work is `icrl::eval_cmd::run`.
+//! tasks (SPEC section 5). The work is `icrl::eval::command::run`.
 
 use std::path::PathBuf;
 
 use clap::Args;
-use icrl::eval_cmd::{self, EvalOptions};
+use icrl::eval::command::{self, EvalOptions};
 use safety_envs::EnvName;
 
 #[derive(Debug, Args)]
@@ -75,7 +75,7 @@ pub struct EvalArgs {
 
 pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
     if !args.from.is_empty() {
-        let out = eval_cmd::replot(&args.from, &args.out)?;
+        let out = command::replot(&args.from, &args.out)?;
         for line in &out.lines {
             println!("{line}");
         }
@@ -119,17 +119,17 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
         );
     }
     opts.validate()?;
-    eval_cmd::check_output_dir(&opts.out)?;
+    command::check_output_dir(&opts.out)?;
     tch::set_num_threads(threads as i32);
     let mut agents = args
         .checkpoint
         .iter()
-        .map(|p| icrl::eval_load::load_checkpoint(p, env))
+        .map(|p| icrl::eval::load::load_checkpoint(p, env))
         .collect::<Result<Vec<_>, _>>()?;
     for (agent, label) in agents.iter_mut().zip(&args.label) {
         agent.label = Some(label.clone());
     }
-    let out = eval_cmd::run(agents, &opts)?;
+    let out = command::run(agents, &opts)?;
     for line in &out.lines {
         println!("{line}");
     }

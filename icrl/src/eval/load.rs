@@ -17,7 +17,7 @@ use crate::ad::AdAgent;
 use crate::checkpoint::{MANIFEST, RunDir, read_manifest};
 use crate::eppo::EppoAgent;
 use crate::eval::{BudgetRange, shared_parameters};
-use crate::eval_cmd::{ContextLimit, EvalCmdError, LoadedAgent, Method};
+use crate::eval::command::{ContextLimit, EvalCmdError, LoadedAgent, Method};
 
 fn bad(path: &Path, message: impl Into<String>) -> EvalCmdError {
     EvalCmdError::Checkpoint {
@@ -200,9 +200,9 @@ pub fn load_checkpoint(path: &Path, env: EnvName) -> Result<LoadedAgent, EvalCmd
 mod tests {
     use super::*;
     use crate::ad::{AdConfig, TrainRequest};
-    use crate::dataset::{DatasetConfig, Source, generate};
+    use crate::data::dataset::{DatasetConfig, Source, generate};
     use crate::eppo::{EppoConfig, PretrainOptions};
-    use crate::eval_cmd::{EvalOptions, run};
+    use crate::eval::command::{EvalOptions, run};
     use std::path::PathBuf;
 
     fn options(out: PathBuf) -> EvalOptions {

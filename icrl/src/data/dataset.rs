@@ -26,7 +26,7 @@ use safety_envs::{
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use crate::histories::{DatasetInfo, History, HistoryFile};
+use crate::data::histories::{DatasetInfo, History, HistoryFile};
 use crate::ppo_lagrangian::{self, PpoLagConfig, PpoLagError, UpdateMetrics};
 use crate::task_seeds::{PretrainTasks, pretrain_task_seed};
 
@@ -40,7 +40,7 @@ pub enum DatasetError {
     #[error(transparent)]
     Ppo(#[from] PpoLagError),
     #[error(transparent)]
-    History(#[from] crate::histories::HistoryError),
+    History(#[from] crate::data::histories::HistoryError),
 }
 
 /// Which learner makes the histories.
@@ -347,7 +347,7 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
     }
     cfg.validate()?;
     // A bad --out fails now, not after hours of generation.
-    crate::histories::check_output_path(&cmd.out)?;
+    crate::data::histories::check_output_path(&cmd.out)?;
     // All histories are held, then concatenated for writing: check they fit.
     {
         let probe = safety_envs::make_env(env, &safety_envs::EnvOptions::default())?;
@@ -392,7 +392,7 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
     let started = std::time::Instant::now();
     let data = generate(&cfg, &|n| bar.inc(n as u64))?;
     bar.finish();
-    crate::histories::write_histories(&cmd.out, &data.file)?;
+    crate::data::histories::write_histories(&cmd.out, &data.file)?;
     let seconds = started.elapsed().as_secs_f64();
     let bytes = std::fs::metadata(&cmd.out).map_or(0, |m| m.len());
     let (mut early, mut late, mut ne, mut nl) = ((0.0, 0.0), (0.0, 0.0), 0.0, 0.0);
@@ -436,7 +436,7 @@ pub fn plot_histories(
     bins: usize,
 ) -> Result<Vec<std::path::PathBuf>, DatasetError> {
     use crate::plots::{Band, HLine, METHOD_COLOURS, Panel, draw_panels};
-    let file = crate::histories::read_histories(path, None)?;
+    let file = crate::data::histories::read_histories(path, None)?;
     let bins = bins.max(1);
     let mut limits: Vec<f32> = Vec::new();
     for h in &file.histories {

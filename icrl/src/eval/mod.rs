@@ -22,6 +22,9 @@
 //!   actions ignored) until the batch's longest one ends; no trajectory sees
 //!   more than `K x t_max` steps.
 
+pub mod command;
+pub mod load;
+
 use std::collections::HashSet;
 
 use rand::{Rng, SeedableRng};

@@ -29,7 +29,7 @@ use serde::{Deserialize, Serialize};
 use tch::{Device, Kind, Tensor, nn, nn::Module, nn::OptimizerConfig};
 use thiserror::Error;
 
-use crate::histories::History;
+use crate::data::histories::History;
 
 /// Everything PPO-Lagrangian can fail with.
 #[derive(Debug, Error)]

@@ -70,7 +70,7 @@ use thiserror::Error;
 
 use crate::agent::{Actions, AgentError, Conditioning, InContextAgent, StepInput};
 use crate::checkpoint::{CheckpointError, RunDir, read_manifest};
-use crate::histories::{History, HistoryError, HistoryFile};
+use crate::data::histories::{History, HistoryError, HistoryFile};
 use crate::model::{self, KvCache, ModelError, Transformer};
 use crate::optim::{Adam, AdamConfig};
 use crate::task_seeds::PretrainTasks;
@@ -199,25 +199,25 @@ fn default_train_fraction() -> f64 {
 pub const PRESETS: [(&str, &str); 6] = [
     (
         "ad-darkroom-table2",
-        include_str!("../presets/ad-darkroom-table2.toml"),
+        include_str!("../../presets/ad-darkroom-table2.toml"),
     ),
     (
         "ad-point-table2",
-        include_str!("../presets/ad-point-table2.toml"),
+        include_str!("../../presets/ad-point-table2.toml"),
     ),
     (
         "ad-car-table2",
-        include_str!("../presets/ad-car-table2.toml"),
+        include_str!("../../presets/ad-car-table2.toml"),
     ),
     (
         "ad-darkroom-quick",
-        include_str!("../presets/ad-darkroom-quick.toml"),
+        include_str!("../../presets/ad-darkroom-quick.toml"),
     ),
     (
         "ad-point-quick",
-        include_str!("../presets/ad-point-quick.toml"),
+        include_str!("../../presets/ad-point-quick.toml"),
     ),
-    ("ad-car-quick", include_str!("../presets/ad-car-quick.toml")),
+    ("ad-car-quick", include_str!("../../presets/ad-car-quick.toml")),
 ];
 
 /// The preset `ad-{env}-{preset}` as a TOML table.
@@ -798,7 +798,7 @@ struct TrainState {
 }
 
 fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), AdError> {
-    let tmp = crate::histories::temp_path(path);
+    let tmp = crate::data::histories::temp_path(path);
     fs::write(&tmp, bytes).map_err(|e| io_err(&tmp, e))?;
     fs::rename(&tmp, path).map_err(|e| io_err(path, e))
 }
@@ -1270,7 +1270,7 @@ pub fn pretrain_command(
             ));
         }
     };
-    let data = crate::histories::read_histories(&dataset_path, Some(env))?;
+    let data = crate::data::histories::read_histories(&dataset_path, Some(env))?;
     let run_dir = match &resume {
         Some((run, _)) => run.path.clone(),
         None => RunDir::create(out, env, "ad", cfg.seed)?.path,
@@ -1687,7 +1687,7 @@ impl InContextAgent for AdAgent {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::dataset::{DatasetConfig, Source, generate};
+    use crate::data::dataset::{DatasetConfig, Source, generate};
     use safety_envs::EnvName;
 
     fn tiny_cfg() -> AdConfig {
@@ -1961,7 +1961,7 @@ mod tests {
         // One step folder loads too, for evaluation of an earlier checkpoint.
         let (_, info) = AdAgent::load(&step_60).unwrap();
         assert_eq!((info.updates_done, info.dir.clone()), (60, step_60.clone()));
-        let loaded = crate::eval_load::load_checkpoint(&step_60, EnvName::DarkRoom).unwrap();
+        let loaded = crate::eval::load::load_checkpoint(&step_60, EnvName::DarkRoom).unwrap();
         assert_eq!(loaded.checkpoint, Some(step_60.clone()));
 
         // Resuming from step 60 redoes 61..120: the metrics lines logged after
