@@ -29,6 +29,7 @@
 pub mod ad;
 pub mod agent;
 pub mod checkpoint;
+pub mod cli;
 pub mod data;
 pub mod eppo;
 pub mod eval;

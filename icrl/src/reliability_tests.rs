@@ -11,8 +11,8 @@ use tch::Tensor;
 use crate::ad::{self, AdConfig, AdError, TrainRequest};
 use crate::checkpoint::{MANIFEST, Manifest, sha256_file};
 use crate::data::dataset::{DatasetConfig, Source, generate};
-use crate::eppo::{self, EppoError, Learner, PretrainOptions};
 use crate::data::histories::HistoryFile;
+use crate::eppo::{self, EppoError, Learner, PretrainOptions};
 
 fn tmp(name: &str) -> PathBuf {
     let d = std::env::temp_dir().join(format!("icrl-reliability-{name}-{}", std::process::id()));
@@ -24,7 +24,7 @@ fn tmp(name: &str) -> PathBuf {
 /// `icrl pretrain --env darkroom --set ...` as the CLI runs it.
 fn pretrain_err(out: &Path, sets: &[&str]) -> String {
     let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
-    eppo::pretrain_command("darkroom", "quick", None, &sets, out)
+    crate::cli::pretrain::eppo("darkroom", "quick", None, &sets, out)
         .expect_err("refused")
         .to_string()
 }

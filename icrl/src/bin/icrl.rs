@@ -107,7 +107,7 @@ fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
     let threads = args
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
-    let r = icrl::data::dataset::dataset_command(&icrl::data::dataset::DatasetCommand {
+    let r = icrl::cli::dataset::dataset_command(&icrl::cli::dataset::DatasetCommand {
         env: args.env,
         out: args.out,
         tasks: args.tasks,
@@ -183,7 +183,7 @@ fn pretrain_ad(args: PretrainArgs) -> anyhow::Result<()> {
     if let Some(seed) = args.seed {
         sets.push(format!("seed={seed}"));
     }
-    let s = icrl::ad::pretrain_command(
+    let s = icrl::cli::pretrain::ad(
         &args.env,
         &args.preset,
         args.dataset.as_deref(),
@@ -217,7 +217,7 @@ fn pretrain(args: PretrainArgs) -> anyhow::Result<()> {
     if let Some(device) = &args.device {
         sets.push(format!("device=\"{device}\""));
     }
-    let report = icrl::eppo::pretrain_command(
+    let report = icrl::cli::pretrain::eppo(
         &args.env,
         &args.preset,
         args.resume.as_deref(),
@@ -335,15 +335,17 @@ fn main() -> ExitCode {
         Command::Pretrain(args) => return pretrain_with_stop(args),
         // An AD run folder has spec.json; EPPO's has a manifest.
         Command::PlotTraining { run, .. } if run.join("spec.json").exists() => {
-            icrl::ad::plot_training(&run)
+            icrl::plots::training::plot_training(&run)
                 .map(|fs| fs.iter().for_each(|f| println!("wrote {}", f.display())))
                 .map_err(Into::into)
         }
-        Command::PlotTraining { run, window } => icrl::eppo::plot_learning_curve(&run, window)
-            .map(|f| println!("wrote {}", f.display()))
-            .map_err(Into::into),
+        Command::PlotTraining { run, window } => {
+            icrl::plots::training::plot_learning_curve(&run, window)
+                .map(|f| println!("wrote {}", f.display()))
+                .map_err(Into::into)
+        }
         Command::PlotHistories { file, out, bins } => {
-            icrl::data::dataset::plot_histories(&file, &out, bins as usize)
+            icrl::plots::training::plot_histories(&file, &out, bins as usize)
                 .map(|fs| fs.iter().for_each(|f| println!("wrote {}", f.display())))
                 .map_err(Into::into)
         }

@@ -15,174 +15,23 @@
 //! `{method}_{env}[_sweep]_conditions.csv`, `figure1_{env}.{png,svg}`,
 //! `figure2_{env}.{png,svg}`, `render_{method}_{env}.gif`.
 
-use std::fmt;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
-use safety_envs::{
-    CmdpEnv, EnvError, EnvName, EnvOptions, Orientation, make_env, sample_task, spawn_config,
-};
+use safety_envs::{CmdpEnv, EnvError, EnvName, EnvOptions, Orientation, make_env, spawn_config};
 use serde::Serialize;
-use thiserror::Error;
 
-use crate::agent::{AgentError, Conditioning, InContextAgent};
+use super::error::EvalCmdError;
+use super::load::LoadedAgent;
+use super::render::render;
+use super::report::{EvalReport, Method};
+use crate::agent::{AgentError, Conditioning};
 use crate::eval::{
-    self, BudgetRange, EvalConfig, EvalError, EvalResult, RandomAgent, Summary, grid,
-    sample_budgets, targets_sweep,
+    self, BudgetRange, EvalConfig, EvalError, Summary, grid, sample_budgets, targets_sweep,
 };
-use crate::plots::{self, EnvCurves, PlotError};
-use crate::task_seeds::PretrainTasks;
-
-/// An `eval` command that failed.
-#[derive(Debug, Error)]
-pub enum EvalCmdError {
-    #[error(transparent)]
-    Eval(#[from] EvalError),
-    #[error(transparent)]
-    Plot(#[from] PlotError),
-    #[error(transparent)]
-    Env(#[from] EnvError),
-    #[error(transparent)]
-    Agent(#[from] AgentError),
-    /// A checkpoint that cannot be evaluated here (other environment, shape).
-    #[error("checkpoint {path}: {message}")]
-    Checkpoint { path: String, message: String },
-    #[error("invalid eval options: {0}")]
-    Options(String),
-    #[error("{path}: {source}")]
-    Io {
-        path: String,
-        source: std::io::Error,
-    },
-    #[error("{path}: {source}")]
-    Json {
-        path: String,
-        source: serde_json::Error,
-    },
-}
-
-/// Which pretraining produced an agent.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
-pub enum Method {
-    /// Safe reinforcement pretraining (EPPO): conditioned on a budget.
-    Eppo,
-    /// Safe supervised pretraining (algorithm distillation with RTG/CTG).
-    Ad,
-    /// A uniformly random policy.
-    Random,
-}
-
-impl Method {
-    /// File-name stem.
-    pub fn stem(self) -> &'static str {
-        match self {
-            Method::Eppo => "eppo",
-            Method::Ad => "ad",
-            Method::Random => "random",
-        }
-    }
-}
-
-impl fmt::Display for Method {
-    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
-        f.write_str(match self {
-            Method::Eppo => "EPPO",
-            Method::Ad => "AD",
-            Method::Random => "random policy",
-        })
-    }
-}
-
-/// A pretrained (or random) agent ready to evaluate, with what its
-/// checkpoint says about it.
-pub struct LoadedAgent {
-    pub method: Method,
-    pub agent: Box<dyn InContextAgent>,
-    /// The checkpoint folder, if any.
-    pub checkpoint: Option<PathBuf>,
-    /// The pretraining tasks the checkpoint records (for the held-out check).
-    pub pretrain_tasks: Option<PretrainTasks>,
-    /// The budget range EPPO was pretrained on (defaults to SPEC's).
-    pub budget_range: Option<BudgetRange>,
-    /// The agent's parameters (shallow clones, see
-    /// [`eval::shared_parameters`]): checksummed before and after evaluating.
-    pub parameters: Vec<(String, tch::Tensor)>,
-    /// The model's context limit, when it has a hard one (EPPO).
-    pub context: Option<ContextLimit>,
-    /// Point and Car: the macro action (physics steps per agent action) the
-    /// checkpoint was trained with; evaluation builds its environments with
-    /// it. `None`: the environment's default (random policy, SafeDarkRoom).
-    pub physics_steps_per_action: Option<usize>,
-    /// What the checkpoint's run reached (e.g. "update 1200 of 3000"), for the report.
-    pub note: String,
-    /// A name for the legends and file names (`--label`), when several
-    /// checkpoints of one method are compared (an ablation); `None`: the method.
-    pub label: Option<String>,
-}
-
-impl LoadedAgent {
-    /// The uniform random policy over `space`, seeded.
-    pub fn random(space: safety_envs::Space, seed: u64) -> Self {
-        LoadedAgent {
-            method: Method::Random,
-            agent: Box::new(RandomAgent::new(space, seed)),
-            checkpoint: None,
-            pretrain_tasks: None,
-            budget_range: None,
-            parameters: Vec::new(),
-            context: None,
-            physics_steps_per_action: None,
-            note: String::new(),
-            label: None,
-        }
-    }
-
-    /// The name in legends: the label, else the method.
-    fn name(&self) -> String {
-        self.label
-            .clone()
-            .unwrap_or_else(|| self.method.to_string())
-    }
-
-    /// The file-name stem: the method's, plus the label's letters and digits.
-    fn stem(&self) -> String {
-        match &self.label {
-            None => self.method.stem().to_string(),
-            Some(l) => {
-                let slug: String = l
-                    .chars()
-                    .map(|c| {
-                        if c.is_ascii_alphanumeric() {
-                            c.to_ascii_lowercase()
-                        } else {
-                            '-'
-                        }
-                    })
-                    .collect();
-                format!("{}_{}", self.method.stem(), slug.trim_matches('-'))
-            }
-        }
-    }
-}
-
-/// A model whose context holds a fixed number of steps (EPPO): its time
-/// limit and how many of its episodes fit.
-#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
-pub struct ContextLimit {
-    /// Time limit the policy was trained with.
-    pub max_episode_steps: usize,
-    /// Steps the model's context holds.
-    pub max_len: usize,
-}
-
-impl ContextLimit {
-    /// Whole episodes of `t_max` steps that fit.
-    pub fn episodes(&self, t_max: usize) -> usize {
-        self.max_len / t_max.max(1)
-    }
-}
+use crate::plots::{self, EnvCurves};
 
 /// Everything the `eval` command needs, already parsed.
 #[derive(Clone, Debug, PartialEq)]
@@ -263,33 +112,6 @@ pub fn env_defaults(env: EnvName) -> EnvDefaults {
             ctg_grid: grid(0.0, 10.0, 1.0),
         },
     }
-}
-
-/// One evaluation's report: exact settings, raw results and their summary.
-#[derive(Debug, Serialize)]
-pub struct EvalReport {
-    pub env: String,
-    pub method: Method,
-    /// The `--label` given to this checkpoint, if any.
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub label: Option<String>,
-    pub checkpoint: Option<String>,
-    pub checkpoint_note: String,
-    /// "figure1" or "sweep".
-    pub protocol: String,
-    pub command: String,
-    pub tasks: usize,
-    pub episodes: usize,
-    pub max_episode_steps: usize,
-    /// Point and Car: MuJoCo physics steps per agent action (absent for SafeDarkRoom).
-    #[serde(skip_serializing_if = "Option::is_none")]
-    pub physics_steps_per_action: Option<usize>,
-    pub threads: usize,
-    /// Parameter checksums before and after the evaluation (equal: frozen).
-    pub parameters_checksum: Option<[u64; 2]>,
-    pub wall_seconds: f64,
-    pub summary: Summary,
-    pub result: EvalResult,
 }
 
 /// The conditions of a protocol for a method, validated.
@@ -889,60 +711,6 @@ pub fn replot(dirs: &[PathBuf], out: &Path) -> Result<EvalOutputs, EvalCmdError>
         fig1.len().max(fig2.len())
     ));
     Ok(outputs)
-}
-
-/// The animation of the recorded trajectory.
-fn render(
-    env: EnvName,
-    report: &EvalReport,
-    rec: &eval::Recording,
-    path: &Path,
-) -> Result<(), EvalCmdError> {
-    let task = &report.result.tasks[rec.task];
-    let budget = report.result.conditions[rec.condition].ctg;
-    match env {
-        EnvName::DarkRoom => {
-            let k_n = rec.episodes.len();
-            // Every step of the first three and the last two episodes; one
-            // frame per episode in between.
-            plots::darkroom_animation(rec, task, budget, &|k| k < 3 || k + 2 >= k_n, path)?;
-            Ok(())
-        }
-        EnvName::Point | EnvName::Car => {
-            let robot = if env == EnvName::Point {
-                safety_envs::nav::Robot::Point
-            } else {
-                safety_envs::nav::Robot::Car
-            };
-            let nav = safety_envs::nav::NavConfig {
-                max_episode_steps: report.max_episode_steps,
-                ..safety_envs::nav::NavConfig::new(robot)
-            };
-            let k_n = rec.episodes.len();
-            // Every 3rd step of the first two and the last episode, rendered
-            // by MuJoCo from a replay of the recorded actions; without
-            // off-screen OpenGL, a drawing from the recorded positions.
-            let steps = |k: usize| k < 2 || k + 1 == k_n;
-            let orientation: Orientation = report.result.orientation.parse()?;
-            let task_value = sample_task(&spawn_config(env), orientation, task.seed)?;
-            let mut sim = safety_envs::SafeDarkMujoco::new(nav.clone())?;
-            sim.set_task(&task_value)?;
-            match plots::nav_render_animation(&mut sim, rec, task, budget, &steps, 3, path) {
-                Ok(_) => return Ok(()),
-                Err(e) => eprintln!(
-                    "MuJoCo rendering failed ({e}); drawing the recorded positions instead"
-                ),
-            }
-            let arena = plots::ArenaGeometry {
-                extent: nav.extent,
-                spacing: nav.spacing(),
-                goal_radius: nav.goal_radius,
-                hazard_radius: nav.hazard_radius,
-            };
-            plots::nav_animation(rec, task, &arena, budget, &steps, 3, path)?;
-            Ok(())
-        }
-    }
 }
 
 #[cfg(test)]

@@ -9,15 +9,109 @@
 //! asked for and that its observation and action sizes match the
 //! environment's, so a foreign checkpoint fails here with its path named.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use safety_envs::{EnvName, EnvOptions, Space, make_env};
+use serde::Serialize;
 
+use super::RandomAgent;
+use super::error::EvalCmdError;
+use super::report::Method;
 use crate::ad::AdAgent;
+use crate::agent::InContextAgent;
 use crate::checkpoint::{MANIFEST, RunDir, read_manifest};
 use crate::eppo::EppoAgent;
 use crate::eval::{BudgetRange, shared_parameters};
-use crate::eval::command::{ContextLimit, EvalCmdError, LoadedAgent, Method};
+use crate::task_seeds::PretrainTasks;
+
+/// A pretrained (or random) agent ready to evaluate, with what its
+/// checkpoint says about it.
+pub struct LoadedAgent {
+    pub method: Method,
+    pub agent: Box<dyn InContextAgent>,
+    /// The checkpoint folder, if any.
+    pub checkpoint: Option<PathBuf>,
+    /// The pretraining tasks the checkpoint records (for the held-out check).
+    pub pretrain_tasks: Option<PretrainTasks>,
+    /// The budget range EPPO was pretrained on (defaults to SPEC's).
+    pub budget_range: Option<BudgetRange>,
+    /// The agent's parameters (shallow clones, see
+    /// [`super::shared_parameters`]): checksummed before and after evaluating.
+    pub parameters: Vec<(String, tch::Tensor)>,
+    /// The model's context limit, when it has a hard one (EPPO).
+    pub context: Option<ContextLimit>,
+    /// Point and Car: the macro action (physics steps per agent action) the
+    /// checkpoint was trained with; evaluation builds its environments with
+    /// it. `None`: the environment's default (random policy, SafeDarkRoom).
+    pub physics_steps_per_action: Option<usize>,
+    /// What the checkpoint's run reached (e.g. "update 1200 of 3000"), for the report.
+    pub note: String,
+    /// A name for the legends and file names (`--label`), when several
+    /// checkpoints of one method are compared (an ablation); `None`: the method.
+    pub label: Option<String>,
+}
+
+impl LoadedAgent {
+    /// The uniform random policy over `space`, seeded.
+    pub fn random(space: safety_envs::Space, seed: u64) -> Self {
+        LoadedAgent {
+            method: Method::Random,
+            agent: Box::new(RandomAgent::new(space, seed)),
+            checkpoint: None,
+            pretrain_tasks: None,
+            budget_range: None,
+            parameters: Vec::new(),
+            context: None,
+            physics_steps_per_action: None,
+            note: String::new(),
+            label: None,
+        }
+    }
+
+    /// The name in legends: the label, else the method.
+    pub(crate) fn name(&self) -> String {
+        self.label
+            .clone()
+            .unwrap_or_else(|| self.method.to_string())
+    }
+
+    /// The file-name stem: the method's, plus the label's letters and digits.
+    pub(crate) fn stem(&self) -> String {
+        match &self.label {
+            None => self.method.stem().to_string(),
+            Some(l) => {
+                let slug: String = l
+                    .chars()
+                    .map(|c| {
+                        if c.is_ascii_alphanumeric() {
+                            c.to_ascii_lowercase()
+                        } else {
+                            '-'
+                        }
+                    })
+                    .collect();
+                format!("{}_{}", self.method.stem(), slug.trim_matches('-'))
+            }
+        }
+    }
+}
+
+/// A model whose context holds a fixed number of steps (EPPO): its time
+/// limit and how many of its episodes fit.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize)]
+pub struct ContextLimit {
+    /// Time limit the policy was trained with.
+    pub max_episode_steps: usize,
+    /// Steps the model's context holds.
+    pub max_len: usize,
+}
+
+impl ContextLimit {
+    /// Whole episodes of `t_max` steps that fit.
+    pub fn episodes(&self, t_max: usize) -> usize {
+        self.max_len / t_max.max(1)
+    }
+}
 
 fn bad(path: &Path, message: impl Into<String>) -> EvalCmdError {
     EvalCmdError::Checkpoint {

@@ -1,0 +1,139 @@
+//! `icrl dataset`: a dataset of learning histories for supervised
+//! pretraining, generated with a progress bar, checked for memory first and
+//! written to HDF5.
+
+use safety_envs::EnvName;
+
+use crate::data::dataset::{DatasetConfig, DatasetError, Source, generate};
+
+/// The `dataset` command's options (see `icrl dataset --help`).
+#[derive(Clone, Debug)]
+pub struct DatasetCommand {
+    pub env: String,
+    pub out: std::path::PathBuf,
+    pub tasks: usize,
+    pub steps: usize,
+    /// `None`: the paper's limits for the environment.
+    pub cost_limits: Option<Vec<f32>>,
+    pub seed: u64,
+    pub threads: usize,
+    pub source: Source,
+    /// Point and Car: physics steps per agent action; `None`: the default (50).
+    pub physics_steps_per_action: Option<usize>,
+    /// Episodes kept per history (log-spaced); `None` keeps all.
+    pub keep_episodes: Option<usize>,
+}
+
+/// What the `dataset` command made.
+#[derive(Clone, Debug)]
+pub struct DatasetReport {
+    pub out: std::path::PathBuf,
+    pub histories: usize,
+    /// Steps in the file (fewer than taken when episodes were subsampled).
+    pub steps: usize,
+    /// Environment steps the learners took.
+    pub steps_taken: usize,
+    pub episodes: usize,
+    pub seconds: f64,
+    pub bytes: u64,
+    /// Mean episode return and cost over the first and the last 10% of
+    /// episodes of every history: how much the histories improve.
+    pub early: (f64, f64),
+    pub late: (f64, f64),
+    /// Point and Car: the macro action recorded in the file.
+    pub physics_steps_per_action: Option<usize>,
+}
+
+/// Runs the `dataset` command: generates with a progress bar, writes the HDF5
+/// file (atomically), and summarises it.
+pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetError> {
+    let env: EnvName = cmd.env.parse()?;
+    let mut cfg = DatasetConfig::paper(env, cmd.tasks, cmd.seed);
+    cfg.steps = cmd.steps;
+    cfg.threads = cmd.threads;
+    cfg.source = cmd.source;
+    cfg.physics_steps_per_action = cmd.physics_steps_per_action;
+    cfg.keep_episodes = cmd.keep_episodes;
+    if let Some(c) = &cmd.cost_limits {
+        cfg.cost_limits = c.clone();
+    }
+    cfg.validate()?;
+    // A bad --out fails now, not after hours of generation.
+    crate::data::histories::check_output_path(&cmd.out)?;
+    // All histories are held, then concatenated for writing: check they fit.
+    {
+        let probe = safety_envs::make_env(env, &safety_envs::EnvOptions::default())?;
+        let o = probe.observation_space().flat_dim() as f64;
+        let a = match probe.action_space() {
+            safety_envs::Space::Discrete { .. } => 1.0,
+            safety_envs::Space::Box { low, .. } => low.len() as f64,
+        };
+        let steps = cfg.tasks as f64 * cfg.cost_limits.len() as f64 * cfg.steps as f64;
+        let mut m = crate::guard::MemoryEstimate {
+            levers: "--tasks, --steps or the number of --cost-limits".into(),
+            ..Default::default()
+        };
+        m.add(
+            "histories and their copy for writing",
+            2.0 * 4.0 * steps * (2.0 * o + a + 6.0),
+        );
+        m.check().map_err(DatasetError::Config)?;
+    }
+    if cfg.threads > 1024 {
+        return Err(DatasetError::Config(format!(
+            "threads ({}) must be at most 1024",
+            cfg.threads
+        )));
+    }
+    let total = (cfg.tasks * cfg.cost_limits.len() * cfg.steps) as u64;
+    let bar = indicatif::ProgressBar::new(total);
+    bar.set_style(
+        indicatif::ProgressStyle::with_template(
+            "{prefix} [{elapsed_precise}] {wide_bar} {pos}/{len} steps ({per_sec}, eta {eta})",
+        )
+        .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+    );
+    bar.set_prefix(format!(
+        "{} {}",
+        cmd.env,
+        match cmd.source {
+            Source::PpoLagrangian => "ppo-lagrangian",
+            Source::NoisyOptimal => "noisy-optimal",
+        }
+    ));
+    let started = std::time::Instant::now();
+    let data = generate(&cfg, &|n| bar.inc(n as u64))?;
+    bar.finish();
+    crate::data::histories::write_histories(&cmd.out, &data.file)?;
+    let seconds = started.elapsed().as_secs_f64();
+    let bytes = std::fs::metadata(&cmd.out).map_or(0, |m| m.len());
+    let (mut early, mut late, mut ne, mut nl) = ((0.0, 0.0), (0.0, 0.0), 0.0, 0.0);
+    let mut episodes = 0;
+    for h in &data.file.histories {
+        let totals = h.episode_totals();
+        episodes += totals.len();
+        let k = (totals.len() / 10).max(1);
+        for &(r, c) in &totals[..k.min(totals.len())] {
+            early.0 += r as f64;
+            early.1 += c as f64;
+            ne += 1.0;
+        }
+        for &(r, c) in &totals[totals.len().saturating_sub(k)..] {
+            late.0 += r as f64;
+            late.1 += c as f64;
+            nl += 1.0;
+        }
+    }
+    Ok(DatasetReport {
+        out: cmd.out.clone(),
+        histories: data.file.histories.len(),
+        steps: data.file.total_steps(),
+        steps_taken: total as usize,
+        episodes,
+        seconds,
+        bytes,
+        early: (early.0 / ne, early.1 / ne),
+        late: (late.0 / nl, late.1 / nl),
+        physics_steps_per_action: data.file.info.physics_steps_per_action,
+    })
+}

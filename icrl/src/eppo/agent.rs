@@ -1,0 +1,190 @@
+//! The frozen [`EppoAgent`] that evaluation drives: a checkpoint loaded and
+//! checked, acting through the KV cache.
+
+use std::path::Path;
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use tch::{Device, nn};
+
+use super::checkpoint::{TrainState, model_manifest};
+use super::collect::{Acting, EnvActions, sample_actions};
+use super::config::{EppoConfig, EppoError, memory_estimate};
+use super::net::{EppoNet, NetSpec};
+use crate::agent::{Actions, AgentError, Conditioning, InContextAgent, StepInput};
+use crate::checkpoint::{CheckpointError, RunDir, read_manifest};
+
+/// A pretrained EPPO policy, frozen, acting through the KV cache.
+pub struct EppoAgent {
+    _vs: nn::VarStore,
+    net: EppoNet,
+    spec: NetSpec,
+    cfg: EppoConfig,
+    acting: Option<Acting>,
+    rng: ChaCha8Rng,
+}
+
+impl EppoAgent {
+    /// Loads `checkpoints/step_N` (or a run folder: its latest checkpoint) onto `device`.
+    pub fn load(path: &Path, device: Device) -> Result<Self, EppoError> {
+        let dir = if path.join(crate::checkpoint::MANIFEST).is_file() {
+            path.to_path_buf()
+        } else {
+            RunDir::resolve_resume(path)?.1
+        };
+        let manifest = read_manifest(&dir)?;
+        let bad = |file: &str, e: String| {
+            EppoError::Checkpoint(CheckpointError::Invalid {
+                path: dir.join(file),
+                problem: e,
+                fix: "load a checkpoint written by `icrl pretrain` (method eppo)".into(),
+            })
+        };
+        if manifest.method != "eppo" {
+            return Err(bad(
+                crate::checkpoint::MANIFEST,
+                format!("method is {:?}, not eppo", manifest.method),
+            ));
+        }
+        let text = std::fs::read_to_string(dir.join("config.toml"))
+            .map_err(|e| bad("config.toml", e.to_string()))?;
+        let mut cfg: EppoConfig =
+            toml::from_str(&text).map_err(|e| bad("config.toml", e.to_string()))?;
+        cfg.device = if device == Device::Cpu {
+            "cpu".into()
+        } else {
+            "cuda".into()
+        };
+        let text = std::fs::read_to_string(dir.join("state.json"))
+            .map_err(|e| bad("state.json", e.to_string()))?;
+        let state: TrainState =
+            serde_json::from_str(&text).map_err(|e| bad("state.json", e.to_string()))?;
+        // The files decide sizes: check them before building anything.
+        cfg.validate()
+            .map_err(|e| bad("config.toml", e.to_string()))?;
+        state.spec.check().map_err(|e| bad("state.json", e))?;
+        memory_estimate(&cfg, &state.spec)
+            .check()
+            .map_err(|e| bad("config.toml", e))?;
+        // The manifest's model must be what this version builds from the
+        // stored config: a checkpoint from before a token-layout change is
+        // refused by name instead of failing on a tensor shape.
+        manifest
+            .check_compatible(
+                &dir,
+                "eppo",
+                &manifest.env,
+                // The macro action is the checkpoint's own (read_manifest
+                // refuses Point and Car checkpoints that do not record it).
+                manifest.physics_steps_per_action,
+                &model_manifest(&cfg, &state.spec),
+            )
+            .map_err(|e| {
+                bad(
+                    crate::checkpoint::MANIFEST,
+                    format!("{e} (checkpoints written before the token layout changed must be retrained)"),
+                )
+            })?;
+        let mut vs = nn::VarStore::new(device);
+        let net = EppoNet::new(vs.root(), &cfg, &state.spec)?;
+        vs.load(dir.join("model.safetensors"))
+            .map_err(|e| bad("model.safetensors", e.to_string()))?;
+        if let Some((name, n)) = crate::guard::non_finite_variable(&vs) {
+            return Err(bad(
+                "model.safetensors",
+                format!("weight {name} holds {n} NaN or infinite values: this model cannot act"),
+            ));
+        }
+        vs.freeze();
+        Ok(EppoAgent {
+            _vs: vs,
+            net,
+            spec: state.spec,
+            rng: ChaCha8Rng::seed_from_u64(cfg.seed),
+            cfg,
+            acting: None,
+        })
+    }
+
+    /// The training configuration stored with the checkpoint.
+    pub fn config(&self) -> &EppoConfig {
+        &self.cfg
+    }
+
+    /// Reseeds action sampling.
+    pub fn set_seed(&mut self, seed: u64) {
+        self.rng = ChaCha8Rng::seed_from_u64(seed);
+    }
+}
+
+impl InContextAgent for EppoAgent {
+    fn reset(&mut self, conditioning: &[Conditioning]) -> Result<(), AgentError> {
+        let budgets = conditioning
+            .iter()
+            .map(|c| match c {
+                Conditioning::Budget { ctg } => Ok(*ctg),
+                Conditioning::Targets { .. } => Err(AgentError::Input(
+                    "EPPO is conditioned on a budget, not on RTG/CTG targets".into(),
+                )),
+            })
+            .collect::<Result<Vec<f32>, _>>()?;
+        self.acting = Some(Acting::new(&self.net, &self.spec, &self.cfg, &budgets));
+        Ok(())
+    }
+
+    fn act(&mut self, input: &StepInput<'_>, greedy: bool) -> Result<Actions, AgentError> {
+        let acting = self
+            .acting
+            .as_mut()
+            .ok_or_else(|| AgentError::Input("act before reset".into()))?;
+        let b = acting.budgets.len();
+        let (od, a) = (self.spec.obs_dim, self.spec.act_flat());
+        let sizes = [
+            ("obs", input.obs.len(), b * od),
+            ("arrived_obs", input.arrived_obs.len(), b * od),
+            ("prev_action", input.prev_action.len(), b * a),
+            ("reward", input.reward.len(), b),
+            ("cost", input.cost.len(), b),
+            ("episode_start", input.episode_start.len(), b),
+        ];
+        for (name, got, want) in sizes {
+            if got != want {
+                return Err(AgentError::Input(format!(
+                    "{name} has {got} entries, expected {want}"
+                )));
+            }
+        }
+        // Continuous previous actions arrive in the environment's scale; the
+        // network saw them in [-1, 1].
+        let prev: Vec<f32> = match self.spec.n_actions {
+            Some(_) => input.prev_action.to_vec(),
+            None => input
+                .prev_action
+                .iter()
+                .enumerate()
+                .map(|(j, &x)| {
+                    let (lo, hi) = (self.spec.act_low[j % a], self.spec.act_high[j % a]);
+                    if hi > lo {
+                        2.0 * (x - lo) / (hi - lo) - 1.0
+                    } else {
+                        x
+                    }
+                })
+                .collect(),
+        };
+        let input = StepInput {
+            prev_action: &prev,
+            ..*input
+        };
+        acting.observe(&input);
+        let policy = acting.policy(&self.net, &input).map_err(|e| match e {
+            EppoError::Torch(t) => AgentError::Torch(t),
+            other => AgentError::Input(other.to_string()),
+        })?;
+        let (_, env_actions) = sample_actions(&policy, &self.spec, &[], greedy, &mut self.rng);
+        Ok(match env_actions {
+            EnvActions::Discrete(v) => Actions::Discrete(v),
+            EnvActions::Continuous(v) => Actions::Continuous(v),
+        })
+    }
+}

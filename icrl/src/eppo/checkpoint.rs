@@ -1,0 +1,214 @@
+//! EPPO checkpoints: writing and resuming a [`Learner`] (weights, target
+//! weights, Adam moments, lambda, counters, RNG state, resolved config) and
+//! the model manifest that resuming and loading check.
+
+use std::path::{Path, PathBuf};
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use serde::{Deserialize, Serialize};
+
+use safety_envs::EnvName;
+
+use super::Learner;
+use super::config::{EppoConfig, EppoError};
+use super::net::NetSpec;
+use crate::checkpoint::{CheckpointError, RunDir, read_manifest};
+use crate::task_seeds::PretrainTasks;
+
+impl Learner {
+    /// The model shape recorded in checkpoints (resume and loading check it).
+    pub fn model_manifest(&self) -> serde_json::Value {
+        model_manifest(&self.cfg, &self.spec)
+    }
+
+    /// Writes `checkpoints/step_{updates}` (weights, target weights, Adam
+    /// moments, lambda, counters, RNG state, resolved config).
+    pub fn save_checkpoint(&self, run: &RunDir) -> Result<PathBuf, EppoError> {
+        let state = TrainState {
+            lambda: self.lambda,
+            updates: self.updates,
+            env_steps: self.env_steps,
+            rng_seed: self.rng.get_seed(),
+            rng_stream: self.rng.get_stream(),
+            rng_word_pos: self.rng.get_word_pos().to_string(),
+            spec: self.spec.clone(),
+            pretrain_tasks: Some(PretrainTasks::centre(
+                self.cfg.seed,
+                match self.cfg.task_pool {
+                    0 => self.tasks_drawn,
+                    pool => self.tasks_drawn.min(pool),
+                },
+            )),
+            tasks_drawn: Some(self.tasks_drawn),
+        };
+        let config = toml::to_string(&self.cfg).map_err(|e| EppoError::Config(e.to_string()))?;
+        let dir = run.write_checkpoint(
+            self.updates,
+            "eppo",
+            self.env.as_str(),
+            self.env
+                .physics_steps_per_action(self.cfg.physics_steps_per_action),
+            self.model_manifest(),
+            self.cfg.keep_checkpoints,
+            |dir| {
+                let wrap = |path: PathBuf, e: String| CheckpointError::Invalid {
+                    path,
+                    problem: e,
+                    fix: "check the disk".into(),
+                };
+                let p = dir.join("model.safetensors");
+                self.vs
+                    .save(&p)
+                    .map_err(|e| wrap(p.clone(), e.to_string()))?;
+                let p = dir.join("target.safetensors");
+                self.target_vs
+                    .save(&p)
+                    .map_err(|e| wrap(p.clone(), e.to_string()))?;
+                let p = dir.join("optimizer.safetensors");
+                self.opt
+                    .save(&p)
+                    .map_err(|e| wrap(p.clone(), e.to_string()))?;
+                let p = dir.join("state.json");
+                let text = serde_json::to_string_pretty(&state)
+                    .map_err(|e| wrap(p.clone(), e.to_string()))?;
+                std::fs::write(&p, text).map_err(|e| wrap(p.clone(), e.to_string()))?;
+                let p = dir.join("config.toml");
+                std::fs::write(&p, &config).map_err(|e| wrap(p.clone(), e.to_string()))
+            },
+        )?;
+        Ok(dir)
+    }
+
+    /// Restores a learner from a checkpoint folder written by
+    /// [`Learner::save_checkpoint`], after checking it matches `cfg` and `env`.
+    /// The replay buffer is not checkpointed: it refills from the resumed policy.
+    pub fn resume(cfg: EppoConfig, env: EnvName, dir: &Path) -> Result<Self, EppoError> {
+        let manifest = read_manifest(dir)?;
+        let mut learner = Learner::new(cfg, env)?;
+        manifest.check_compatible(
+            dir,
+            "eppo",
+            env.as_str(),
+            env.physics_steps_per_action(learner.cfg.physics_steps_per_action),
+            &learner.model_manifest(),
+        )?;
+        let bad = |file: &str, e: String| {
+            EppoError::Checkpoint(CheckpointError::Invalid {
+                path: dir.join(file),
+                problem: e,
+                fix: "resume from an earlier checkpoints/step_N folder, or start a new run".into(),
+            })
+        };
+        learner
+            .vs
+            .load(dir.join("model.safetensors"))
+            .map_err(|e| bad("model.safetensors", e.to_string()))?;
+        learner
+            .target_vs
+            .load(dir.join("target.safetensors"))
+            .map_err(|e| bad("target.safetensors", e.to_string()))?;
+        for (file, vs) in [
+            ("model.safetensors", &learner.vs),
+            ("target.safetensors", &learner.target_vs),
+        ] {
+            if let Some((name, n)) = crate::guard::non_finite_variable(vs) {
+                return Err(bad(
+                    file,
+                    format!("weight {name} holds {n} NaN or infinite values"),
+                ));
+            }
+        }
+        learner
+            .opt
+            .load(&dir.join("optimizer.safetensors"))
+            .map_err(|e| bad("optimizer.safetensors", e))?;
+        let text = std::fs::read_to_string(dir.join("state.json"))
+            .map_err(|e| bad("state.json", e.to_string()))?;
+        let state: TrainState =
+            serde_json::from_str(&text).map_err(|e| bad("state.json", e.to_string()))?;
+        if state.spec != learner.spec {
+            return Err(bad(
+                "state.json",
+                "the environment's spaces differ from the checkpoint's".into(),
+            ));
+        }
+        learner.lambda = state.lambda;
+        learner.updates = state.updates;
+        learner.env_steps = state.env_steps;
+        // Checkpoints from before tasks were recorded restart the count.
+        let recorded = match &state.pretrain_tasks {
+            None => 0,
+            Some(tasks) => tasks.end.checked_sub(tasks.start).ok_or_else(|| {
+                bad(
+                    "state.json",
+                    format!(
+                        "pretrain_tasks end {} is before start {}",
+                        tasks.end, tasks.start
+                    ),
+                )
+            })?,
+        };
+        learner.tasks_drawn = state.tasks_drawn.unwrap_or(recorded);
+        let mut rng = ChaCha8Rng::from_seed(state.rng_seed);
+        rng.set_stream(state.rng_stream);
+        rng.set_word_pos(
+            state
+                .rng_word_pos
+                .parse::<u128>()
+                .map_err(|e| bad("state.json", e.to_string()))?,
+        );
+        learner.rng = rng;
+        Ok(learner)
+    }
+}
+
+/// Counters and RNG state in `state.json`.
+#[derive(Debug, Serialize, Deserialize)]
+pub(super) struct TrainState {
+    pub(super) lambda: f64,
+    pub(super) updates: u64,
+    pub(super) env_steps: u64,
+    pub(super) rng_seed: [u8; 32],
+    pub(super) rng_stream: u64,
+    /// u128 as a decimal string (JSON numbers cannot hold it).
+    pub(super) rng_word_pos: String,
+    pub(super) spec: NetSpec,
+    /// The pretraining tasks seen so far (absent in older checkpoints).
+    #[serde(default)]
+    pub(super) pretrain_tasks: Option<PretrainTasks>,
+    /// Tasks drawn so far (more than `pretrain_tasks` holds with a task pool).
+    #[serde(default)]
+    pub(super) tasks_drawn: Option<u64>,
+}
+
+/// The pretraining tasks a checkpoint folder records having seen, if it does
+/// (checkpoints written before tasks were recorded return `None`).
+pub fn recorded_pretrain_tasks(dir: &Path) -> Result<Option<PretrainTasks>, EppoError> {
+    let path = dir.join("state.json");
+    let bad = |e: String| {
+        EppoError::Checkpoint(CheckpointError::Invalid {
+            path: path.clone(),
+            problem: e,
+            fix: "point at a complete checkpoints/step_N folder".into(),
+        })
+    };
+    let text = std::fs::read_to_string(&path).map_err(|e| bad(e.to_string()))?;
+    let state: TrainState = serde_json::from_str(&text).map_err(|e| bad(e.to_string()))?;
+    Ok(state.pretrain_tasks)
+}
+
+pub(super) fn model_manifest(cfg: &EppoConfig, spec: &NetSpec) -> serde_json::Value {
+    serde_json::json!({
+        // The token layout: checkpoints from before the arrived observation
+        // was added read a narrower token and are refused by name.
+        "token": "obs,arrived_obs,prev_action,reward,cost,ctg,start",
+        "transformer": cfg.model,
+        "encoder_hidden": cfg.encoder_hidden,
+        "head_hidden": cfg.head_hidden,
+        "n_critics": cfg.n_critics,
+        "obs_dim": spec.obs_dim,
+        "n_actions": spec.n_actions,
+        "act_dim": spec.act_flat(),
+    })
+}

@@ -1,0 +1,405 @@
+//! Acting in the vectorised environments: one collection round
+//! ([`Learner::collect`]: fresh tasks, budgets and K, one batched forward step
+//! per environment step through the KV cache), what the round gathered
+//! ([`RoundStats`]), and the acting state the frozen agent shares.
+
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use tch::{Device, Kind, Tensor};
+
+use safety_envs::{Orientation, VecAction, VecEnv, sample_task, spawn_config};
+
+use super::Learner;
+use super::config::{EppoConfig, EppoError};
+use super::net::{EppoNet, NetSpec};
+use super::replay::{Trajectory, push_token};
+use crate::agent::StepInput;
+use crate::model::KvCache;
+use crate::task_seeds::pretrain_task_seed;
+
+/// What one collection round gathered.
+#[derive(Clone, Debug, Default)]
+pub struct RoundStats {
+    pub trajectories: usize,
+    pub steps: u64,
+    pub mean_return: f64,
+    pub mean_cost: f64,
+    pub first_return: f64,
+    pub last_return: f64,
+    pub first_cost: f64,
+    pub last_cost: f64,
+    /// The in-context search signals, pooled over the round's episodes after
+    /// the first: P(goal | not found earlier in the trajectory) and
+    /// P(goal | found earlier), and the fraction of trajectories that found it.
+    pub discovery_rate: f64,
+    pub revisit_rate: f64,
+    pub found: f64,
+    /// Continuous actions: mean |a| of the collected actions (in [-1, 1])
+    /// and the fraction with |a| > 0.99; NaN for discrete actions.
+    pub action_abs: f64,
+    pub action_saturated: f64,
+}
+
+/// (discovery rate, revisit rate, fraction found at least once) over
+/// trajectories given as per-episode successes; a rate with no episode to
+/// count is NaN.
+pub fn search_rates<'a>(successes: impl Iterator<Item = &'a [bool]>) -> (f64, f64, f64) {
+    let (mut disc, mut disc_n, mut rev, mut rev_n, mut found, mut n) = (0, 0, 0, 0, 0, 0);
+    for episodes in successes {
+        n += 1;
+        let mut seen = false;
+        for (k, &hit) in episodes.iter().enumerate() {
+            if k > 0 {
+                let (hits, count) = if seen {
+                    (&mut rev, &mut rev_n)
+                } else {
+                    (&mut disc, &mut disc_n)
+                };
+                *hits += usize::from(hit);
+                *count += 1;
+            }
+            seen |= hit;
+        }
+        found += usize::from(seen);
+    }
+    let rate = |a: usize, b: usize| {
+        if b == 0 {
+            f64::NAN
+        } else {
+            a as f64 / b as f64
+        }
+    };
+    (rate(disc, disc_n), rate(rev, rev_n), rate(found, n))
+}
+
+pub(super) fn mean(xs: impl Iterator<Item = f64>) -> f64 {
+    let (s, n) = xs.fold((0.0, 0usize), |(s, n), x| (s + x, n + 1));
+    if n == 0 { 0.0 } else { s / n as f64 }
+}
+
+impl Learner {
+    /// Collects `cfg.n_envs` trajectories at once: each in a fresh centre-oriented
+    /// task with its own budget and K, acted in one batch through the KV cache.
+    pub fn collect(&mut self, venv: &mut VecEnv) -> Result<RoundStats, EppoError> {
+        let n = venv.len();
+        let spawn = spawn_config(self.env);
+        let (mut budgets, mut ks, mut seeds) = (vec![0f32; n], vec![0usize; n], vec![0u64; n]);
+        let mut eps_scale = vec![1f64; n];
+        for i in 0..n {
+            let index = match self.cfg.task_pool {
+                0 => self.tasks_drawn,
+                pool => self.tasks_drawn % pool,
+            };
+            let seed = pretrain_task_seed(self.cfg.seed, index);
+            self.tasks_drawn += 1;
+            let task = sample_task(&spawn, Orientation::Centre, seed)?;
+            venv.set_task(i, &task)?;
+            budgets[i] = self.rng.gen_range(self.cfg.ctg_min..=self.cfg.ctg_max);
+            ks[i] = self.rng.gen_range(self.cfg.k_min..=self.cfg.k_max);
+            seeds[i] = self.rng.r#gen();
+            if self.cfg.eps_random_scale {
+                eps_scale[i] = self.rng.r#gen();
+            }
+        }
+        venv.reset(&seeds)?;
+        let exploration = self.cfg.exploration(self.env_steps);
+        let horizons: Vec<usize> = ks.iter().map(|k| k * self.cfg.max_episode_steps).collect();
+        let mut acting = Acting::new(&self.net, &self.spec, &self.cfg, &budgets);
+        let mut trajs: Vec<Trajectory> = budgets
+            .iter()
+            .map(|&budget| Trajectory {
+                budget,
+                ..Default::default()
+            })
+            .collect();
+        let mut active = vec![true; n];
+        let (od, a) = (self.spec.obs_dim, self.spec.act_flat());
+        let mut obs = venv.observations().to_vec();
+        let mut arrived = vec![0f32; n * od];
+        let mut prev_action = vec![0f32; n * a];
+        let (mut reward, mut cost, mut start) = (vec![0f32; n], vec![0f32; n], vec![true; n]);
+        let (mut ep_ret, mut ep_cost) = (vec![0f32; n], vec![0f32; n]);
+        let mut steps = 0u64;
+        while active.iter().any(|&x| x) {
+            let input = StepInput {
+                obs: &obs,
+                arrived_obs: &arrived,
+                prev_action: &prev_action,
+                reward: &reward,
+                cost: &cost,
+                episode_start: &start,
+            };
+            let ctg_now = acting.observe(&input);
+            let policy = acting.policy(&self.net, &input)?;
+            let eps: Vec<f64> = (0..n)
+                .map(|i| exploration.at(trajs[i].len(), horizons[i], eps_scale[i]))
+                .collect();
+            let (net_actions, env_actions) =
+                sample_actions(&policy, &self.spec, &eps, false, &mut self.rng);
+            for i in (0..n).filter(|&i| active[i]) {
+                let t = &mut trajs[i];
+                t.obs.extend_from_slice(&obs[i * od..(i + 1) * od]);
+                t.actions
+                    .extend_from_slice(&net_actions[i * a..(i + 1) * a]);
+                if let EnvActions::Discrete(idx) = &env_actions {
+                    t.action_idx.push(idx[i] as i64);
+                }
+                t.ctg.push(ctg_now[i]);
+                t.start.push(start[i]);
+                t.episode.push(t.episode_returns.len() as u32);
+            }
+            let outcomes = match &env_actions {
+                EnvActions::Discrete(idx) => venv.step(VecAction::Discrete(idx))?,
+                EnvActions::Continuous(v) => venv.step(VecAction::Continuous(v))?,
+            }
+            .to_vec();
+            obs.copy_from_slice(venv.observations());
+            for i in 0..n {
+                let o = outcomes[i];
+                // Where the action led: the final observation when it ended
+                // the episode (the auto-reset already replaced `obs`).
+                let reached = if o.done() {
+                    venv.final_observations()
+                } else {
+                    venv.observations()
+                };
+                arrived[i * od..(i + 1) * od].copy_from_slice(&reached[i * od..(i + 1) * od]);
+                reward[i] = o.reward;
+                cost[i] = o.cost;
+                start[i] = o.done();
+                prev_action[i * a..(i + 1) * a].copy_from_slice(&net_actions[i * a..(i + 1) * a]);
+                if !active[i] {
+                    continue;
+                }
+                steps += 1;
+                let t = &mut trajs[i];
+                t.next_obs.extend_from_slice(&arrived[i * od..(i + 1) * od]);
+                t.rewards.push(o.reward);
+                t.costs.push(o.cost);
+                // Kept apart all the way into the TD targets (see make_batch).
+                t.terminated.push(o.terminated);
+                t.truncated.push(o.truncated);
+                ep_ret[i] += o.reward;
+                ep_cost[i] += o.cost;
+                if o.done() {
+                    t.episode_returns.push(ep_ret[i]);
+                    t.episode_costs.push(ep_cost[i]);
+                    t.episode_success.push(o.terminated);
+                    ep_ret[i] = 0.0;
+                    ep_cost[i] = 0.0;
+                    if t.episode_returns.len() == ks[i] {
+                        active[i] = false;
+                    }
+                }
+            }
+        }
+        self.env_steps += steps;
+        let (discovery_rate, revisit_rate, found) =
+            search_rates(trajs.iter().map(|t| t.episode_success.as_slice()));
+        let (action_abs, action_saturated) = if self.spec.n_actions.is_some() {
+            (f64::NAN, f64::NAN)
+        } else {
+            let all = || {
+                trajs
+                    .iter()
+                    .flat_map(|t| t.actions.iter().map(|&x| f64::from(x.abs())))
+            };
+            (
+                mean(all()),
+                mean(all().map(|x| if x > 0.99 { 1.0 } else { 0.0 })),
+            )
+        };
+        let stats = RoundStats {
+            action_abs,
+            action_saturated,
+            discovery_rate,
+            revisit_rate,
+            found,
+            trajectories: n,
+            steps,
+            mean_return: mean(
+                trajs
+                    .iter()
+                    .flat_map(|t| t.episode_returns.iter().map(|&x| f64::from(x))),
+            ),
+            mean_cost: mean(
+                trajs
+                    .iter()
+                    .flat_map(|t| t.episode_costs.iter().map(|&x| f64::from(x))),
+            ),
+            first_return: mean(trajs.iter().map(|t| f64::from(t.episode_returns[0]))),
+            last_return: mean(
+                trajs
+                    .iter()
+                    .map(|t| f64::from(*t.episode_returns.last().unwrap_or(&0.0))),
+            ),
+            first_cost: mean(trajs.iter().map(|t| f64::from(t.episode_costs[0]))),
+            last_cost: mean(
+                trajs
+                    .iter()
+                    .map(|t| f64::from(*t.episode_costs.last().unwrap_or(&0.0))),
+            ),
+        };
+        for t in trajs {
+            self.replay.push(t);
+        }
+        Ok(stats)
+    }
+}
+
+/// Per-batch acting state: the KV cache and each trajectory's CTG.
+pub(super) struct Acting {
+    pub(super) cache: KvCache,
+    pub(super) budgets: Vec<f32>,
+    pub(super) ctg: Vec<f32>,
+    pub(super) tokens: Vec<f32>,
+    pub(super) spec: NetSpec,
+    pub(super) cfg: EppoConfig,
+}
+
+/// The policy's output for B trajectories, on the CPU.
+pub(super) enum Policy {
+    /// (B, A) probabilities.
+    Discrete(Vec<f32>, usize),
+    /// (B, A) means and log-stds.
+    Continuous(Vec<f32>, Vec<f32>, usize),
+}
+
+pub(super) enum EnvActions {
+    Discrete(Vec<usize>),
+    Continuous(Vec<f32>),
+}
+
+impl Acting {
+    pub(super) fn new(net: &EppoNet, spec: &NetSpec, cfg: &EppoConfig, budgets: &[f32]) -> Self {
+        Acting {
+            cache: net.new_cache(),
+            budgets: budgets.to_vec(),
+            ctg: budgets.to_vec(),
+            tokens: Vec::new(),
+            spec: spec.clone(),
+            cfg: cfg.clone(),
+        }
+    }
+
+    /// Updates each CTG from the step's input (restart at the budget on an
+    /// episode's first step, else decrease by the cost just received) and
+    /// returns the CTGs the policy sees.
+    pub(super) fn observe(&mut self, input: &StepInput<'_>) -> Vec<f32> {
+        for i in 0..self.budgets.len() {
+            self.ctg[i] = if input.episode_start[i] {
+                self.budgets[i]
+            } else {
+                self.ctg[i] - input.cost[i]
+            };
+        }
+        self.ctg.clone()
+    }
+
+    /// Encodes one step of B trajectories through the cache; returns the policy.
+    pub(super) fn policy(
+        &mut self,
+        net: &EppoNet,
+        input: &StepInput<'_>,
+    ) -> Result<Policy, EppoError> {
+        let b = self.budgets.len();
+        let (od, a) = (self.spec.obs_dim, self.spec.act_flat());
+        self.tokens.clear();
+        for i in 0..b {
+            push_token(
+                &self.spec,
+                &self.cfg,
+                &mut self.tokens,
+                &input.obs[i * od..(i + 1) * od],
+                &input.arrived_obs[i * od..(i + 1) * od],
+                &input.prev_action[i * a..(i + 1) * a],
+                input.reward[i],
+                input.cost[i],
+                self.ctg[i],
+                input.episode_start[i],
+            );
+        }
+        let device = net.enc_1.ws.device();
+        let x = Tensor::from_slice(&self.tokens)
+            .view([b as i64, 1, self.spec.token_dim() as i64])
+            .to_device(device); // (B, 1, token_dim)
+        tch::no_grad(|| {
+            let h = net.encode_step(&x, &mut self.cache)?.squeeze_dim(1); // (B, 1, D) -> (B, D)
+            Ok(match self.spec.n_actions {
+                Some(n) => {
+                    let p = net
+                        .actor
+                        .forward(&h)
+                        .softmax(-1, Kind::Float)
+                        .to_device(Device::Cpu);
+                    Policy::Discrete(Vec::<f32>::try_from(&p.view([-1]))?, n)
+                }
+                None => {
+                    let (m, s) = net.gaussian(&h);
+                    let m = Vec::<f32>::try_from(&m.to_device(Device::Cpu).reshape([-1]))?;
+                    let s = Vec::<f32>::try_from(&s.to_device(Device::Cpu).reshape([-1]))?;
+                    Policy::Continuous(m, s, a)
+                }
+            })
+        })
+    }
+}
+
+/// Picks actions: sampled (epsilon-greedy on top for discrete, row i with
+/// probability `eps[i]`; rows past the slice take none) or the mode. Returns the actions as the network sees them and as the environment takes them.
+pub(super) fn sample_actions(
+    policy: &Policy,
+    spec: &NetSpec,
+    eps: &[f64],
+    greedy: bool,
+    rng: &mut ChaCha8Rng,
+) -> (Vec<f32>, EnvActions) {
+    match policy {
+        Policy::Discrete(p, n) => {
+            let n = *n;
+            let b = p.len() / n;
+            let mut onehot = vec![0f32; b * n];
+            let idx: Vec<usize> = (0..b)
+                .map(|i| {
+                    let row = &p[i * n..(i + 1) * n];
+                    let k = if greedy {
+                        row.iter()
+                            .enumerate()
+                            .fold(0, |best, (k, &x)| if x > row[best] { k } else { best })
+                    } else if rng.r#gen::<f64>() < eps.get(i).copied().unwrap_or(0.0) {
+                        rng.gen_range(0..n)
+                    } else {
+                        let u: f32 = rng.r#gen();
+                        let mut acc = 0.0;
+                        row.iter()
+                            .position(|&x| {
+                                acc += x;
+                                u < acc
+                            })
+                            .unwrap_or(n - 1)
+                    };
+                    onehot[i * n + k] = 1.0;
+                    k
+                })
+                .collect();
+            (onehot, EnvActions::Discrete(idx))
+        }
+        Policy::Continuous(m, s, a) => {
+            let mut net = Vec::with_capacity(m.len());
+            let mut env = Vec::with_capacity(m.len());
+            for (j, (&mu, &log_std)) in m.iter().zip(s).enumerate() {
+                let z = if greedy {
+                    0.0
+                } else {
+                    rng.sample::<f32, _>(rand_distr::StandardNormal)
+                };
+                let x = (mu + log_std.exp() * z).tanh();
+                let k = j % a;
+                let (lo, hi) = (spec.act_low[k], spec.act_high[k]);
+                net.push(x);
+                env.push(lo + (x + 1.0) * 0.5 * (hi - lo));
+            }
+            (net, EnvActions::Continuous(env))
+        }
+    }
+}

@@ -1,0 +1,397 @@
+//! EPPO's hyperparameters ([`EppoConfig`], one documented field each) and
+//! what can fail ([`EppoError`]); the checks run before anything is built
+//! (validation, the device, the memory estimate) and the bilevel exploration
+//! schedule ([`Exploration`]).
+
+use std::path::PathBuf;
+
+use serde::{Deserialize, Serialize};
+use tch::Device;
+use thiserror::Error;
+
+use safety_envs::EnvError;
+
+use super::net::NetSpec;
+use crate::checkpoint::CheckpointError;
+use crate::model::{self, ModelError};
+
+/// Every EPPO hyperparameter (presets in `icrl/presets/eppo-*.toml`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct EppoConfig {
+    /// Seed of every random choice (tasks, budgets, actions, libtorch).
+    pub seed: u64,
+    /// `cpu` or `cuda` (CUDA device 0).
+    pub device: String,
+    /// libtorch intra-op threads; 0 keeps libtorch's default (one per core).
+    /// 1 is fastest for small-batch acting on a loaded machine, where OpenMP
+    /// barriers between oversubscribed threads dominate each tiny operation.
+    #[serde(default)]
+    pub torch_threads: i32,
+    /// Environment time limit t_max in agent steps.
+    pub max_episode_steps: usize,
+    /// Fewest episodes per trajectory (K_min).
+    pub k_min: usize,
+    /// Most episodes per trajectory (K_max).
+    pub k_max: usize,
+    /// Smallest sampled per-episode cost budget (CTG_min).
+    pub ctg_min: f32,
+    /// Largest sampled per-episode cost budget (CTG_max); also scales CTG in the tokens.
+    pub ctg_max: f32,
+    /// Trajectories collected at once (one environment each, acted in one batch).
+    pub n_envs: usize,
+    /// Threads stepping the environments.
+    pub env_threads: usize,
+    /// Replay capacity in environment steps (whole trajectories are evicted, oldest first).
+    pub replay_capacity: usize,
+    /// The shared transformer; `max_len` is the sequence length.
+    pub model: model::Config,
+    /// Hidden width of the time-step encoder MLP.
+    pub encoder_hidden: i64,
+    /// Hidden width of the actor and critic heads.
+    pub head_hidden: i64,
+    /// Critics per ensemble (reward target: minimum over them; cost target: mean).
+    pub n_critics: i64,
+    /// Discount factor gamma.
+    pub gamma: f64,
+    /// Value targets bootstrap across episode boundaries inside a trajectory
+    /// (AMAGO's meta-RL view: the objective is the sum of all K returns).
+    pub bootstrap_across_episodes: bool,
+    /// Polyak factor of the target networks (target <- (1 - tau) target + tau online).
+    pub tau: f64,
+    /// Steps of real rewards in each TD target before bootstrapping (n-step
+    /// returns, each step's sum stopping where its bootstrap mask stops):
+    /// with sparse rewards and gamma near 1 a one-step target moves value
+    /// (and corrects stale optimism) one step per target-network lag;
+    /// n steps move it n times faster. 1: the paper's one-step target.
+    #[serde(default = "default_n_step")]
+    pub n_step: usize,
+    /// Adam learning rate.
+    pub lr: f64,
+    /// Adam beta1.
+    pub beta1: f64,
+    /// Adam beta2.
+    pub beta2: f64,
+    /// Adam epsilon.
+    pub adam_eps: f64,
+    /// Global gradient-norm clip.
+    pub grad_clip: f64,
+    /// Trajectories per update batch (N).
+    pub batch_size: usize,
+    /// Updates to run in total.
+    pub total_updates: u64,
+    /// Updates after each collection round.
+    pub updates_per_round: u64,
+    /// Environment steps collected before the first update.
+    pub learning_starts: u64,
+    /// Multiplier step size eta of Eq. (7).
+    pub lambda_lr: f64,
+    /// Cap lambda_max of the multiplier (Appendix C).
+    pub lambda_max: f64,
+    /// Initial multiplier.
+    pub lambda_init: f64,
+    /// Updates before Eq. (7) starts moving lambda (it stays at `lambda_init`):
+    /// the agent first learns to search and return to the goal, then the
+    /// constraint prices its costs (a multiplier at its cap from the start
+    /// stops search before it is learned; results/eppo_ladder).
+    #[serde(default)]
+    pub lambda_warmup_updates: u64,
+    /// Weight of the critic losses against the actor loss.
+    pub critic_weight: f64,
+    /// Entropy bonus weight in the actor loss.
+    pub entropy_coef: f64,
+    /// Weight of AMAGO's filtered behaviour cloning in the actor loss:
+    /// -1[A(h_t, a_t) > 0] log pi(a_t | h_t) on the replayed actions, with
+    /// A = Q(h_t, a_t) - E_pi Q(h_t, .) from the reward critics (mean over
+    /// the ensemble, no gradient). It anchors the actor to replayed actions
+    /// that beat its own (0: off, the paper's Lp alone; AMAGO uses 0.1).
+    #[serde(default)]
+    pub bc_coef: f64,
+    /// Rewards are multiplied by this in the TD targets and the tokens.
+    pub reward_scale: f64,
+    /// Epsilon-greedy exploration (discrete actions) at a trajectory's first
+    /// step, at the start of training. Epsilon is bilevel, after AMAGO: it
+    /// anneals over training and, inside each trajectory, moves linearly from
+    /// its first-step value to its last-step value (`eps_last_*`).
+    pub eps_start: f64,
+    /// Epsilon at a trajectory's first step once annealed.
+    pub eps_end: f64,
+    /// Environment steps over which both ends anneal linearly.
+    pub eps_decay_steps: u64,
+    /// Epsilon at a trajectory's last step, at the start of training
+    /// (absent: equal to `eps_start`, no decay inside a trajectory).
+    #[serde(default)]
+    pub eps_last_start: Option<f64>,
+    /// Epsilon at a trajectory's last step once annealed (absent: `eps_end`).
+    #[serde(default)]
+    pub eps_last_end: Option<f64>,
+    /// Scale each trajectory's epsilon by its own uniform draw in [0, 1]
+    /// (AMAGO's `randomize_eps`): the replay then holds the whole range from
+    /// near-on-policy to noisy trajectories.
+    #[serde(default)]
+    pub eps_random_scale: bool,
+    /// Pretraining task pool: 0 draws a fresh task for every trajectory (the
+    /// paper); n > 0 cycles over the first n task seeds (1: one fixed task,
+    /// the first rung of the debugging ladder).
+    #[serde(default)]
+    pub task_pool: u64,
+    /// Updates between checkpoints (one is always written at the end).
+    pub checkpoint_every: u64,
+    /// Checkpoints kept (0 keeps all).
+    pub keep_checkpoints: usize,
+    /// Point and Car: MuJoCo physics steps per agent action (the macro
+    /// action; 5 Safety-Gymnasium steps x 10 physics steps = 50 when absent).
+    /// SafeDarkRoom has no physics: leave it out. Checkpoints record the
+    /// resolved value; resuming with another is refused.
+    #[serde(default = "default_physics_steps_per_action")]
+    pub physics_steps_per_action: Option<usize>,
+}
+
+/// Absent from a config: one-step TD targets (the paper's).
+fn default_n_step() -> usize {
+    1
+}
+
+/// Absent from a config: the environment's default macro action.
+fn default_physics_steps_per_action() -> Option<usize> {
+    None
+}
+
+/// A configuration that cannot run, a failing environment, model or checkpoint.
+#[derive(Debug, Error)]
+pub enum EppoError {
+    #[error("eppo config: {0}")]
+    Config(String),
+    #[error(transparent)]
+    Env(#[from] EnvError),
+    #[error(transparent)]
+    Model(#[from] ModelError),
+    #[error(transparent)]
+    Torch(#[from] tch::TchError),
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    /// A loss or gradient became NaN or infinite: the update was not applied.
+    #[error(
+        "update {update}: {what}; training stopped without applying it. {}",
+        crate::checkpoint::last_good(.checkpoint, "lower lr, or check the settings")
+    )]
+    NonFinite {
+        update: u64,
+        what: String,
+        checkpoint: Option<PathBuf>,
+    },
+    /// Stopped by SIGINT/SIGTERM after writing a checkpoint.
+    #[error("interrupted after update {updates}: checkpoint written to {}", .checkpoint.display())]
+    Interrupted { checkpoint: PathBuf, updates: u64 },
+}
+
+impl EppoConfig {
+    /// Checks the values that would otherwise fail deep inside training:
+    /// every count at least 1, every number finite and in its range (named
+    /// in the error), and the sizes that must fit together.
+    pub fn validate(&self) -> Result<(), EppoError> {
+        use crate::guard::{Range, check_counts, check_numbers};
+        let bad = |m: String| Err(EppoError::Config(m));
+        self.model.validate()?;
+        check_counts(&[
+            ("max_episode_steps", self.max_episode_steps as i128),
+            ("k_min", self.k_min as i128),
+            ("k_max", self.k_max as i128),
+            ("n_envs", self.n_envs as i128),
+            ("env_threads", self.env_threads as i128),
+            ("replay_capacity", self.replay_capacity as i128),
+            ("encoder_hidden", i128::from(self.encoder_hidden)),
+            ("head_hidden", i128::from(self.head_hidden)),
+            ("n_critics", i128::from(self.n_critics)),
+            ("batch_size", self.batch_size as i128),
+            ("total_updates", i128::from(self.total_updates)),
+            ("updates_per_round", i128::from(self.updates_per_round)),
+            ("checkpoint_every", i128::from(self.checkpoint_every)),
+            ("n_step", self.n_step as i128),
+            (
+                "physics_steps_per_action",
+                self.physics_steps_per_action.map_or(1, |n| n as i128),
+            ),
+        ])
+        .or_else(bad)?;
+        crate::guard::check_torch_threads(self.torch_threads).or_else(bad)?;
+        check_numbers(&[
+            ("ctg_min", f64::from(self.ctg_min), Range::NON_NEGATIVE),
+            ("ctg_max", f64::from(self.ctg_max), Range::POSITIVE),
+            ("gamma", self.gamma, Range::UNIT_OPEN_HIGH),
+            ("tau", self.tau, Range::UNIT),
+            ("lr", self.lr, Range::UNIT_OPEN_LOW),
+            ("beta1", self.beta1, Range::UNIT_OPEN_HIGH),
+            ("beta2", self.beta2, Range::UNIT_OPEN_HIGH),
+            ("adam_eps", self.adam_eps, Range::UNIT_OPEN_LOW),
+            ("grad_clip", self.grad_clip, Range::POSITIVE),
+            ("lambda_lr", self.lambda_lr, Range::NON_NEGATIVE),
+            ("lambda_max", self.lambda_max, Range::NON_NEGATIVE),
+            ("lambda_init", self.lambda_init, Range::NON_NEGATIVE),
+            ("critic_weight", self.critic_weight, Range::POSITIVE),
+            ("entropy_coef", self.entropy_coef, Range::NON_NEGATIVE),
+            ("bc_coef", self.bc_coef, Range::NON_NEGATIVE),
+            // Scaled rewards go into float32 tokens: keep them far from overflow.
+            (
+                "reward_scale",
+                self.reward_scale,
+                Range::new(0.0, true, 1e6, false),
+            ),
+            ("eps_start", self.eps_start, Range::UNIT),
+            ("eps_end", self.eps_end, Range::UNIT),
+        ])
+        .or_else(bad)?;
+        if self.k_min == 0 || self.k_min > self.k_max {
+            return bad(format!(
+                "need 1 <= k_min <= k_max, got k_min = {}, k_max = {}",
+                self.k_min, self.k_max
+            ));
+        }
+        let longest = self.k_max.saturating_mul(self.max_episode_steps);
+        if longest as u128 > self.model.max_len as u128 {
+            return bad(format!(
+                "a trajectory of k_max * max_episode_steps = {} * {} = {longest} steps exceeds model.max_len = {}",
+                self.k_max, self.max_episode_steps, self.model.max_len
+            ));
+        }
+        if !(self.ctg_min >= 0.0 && self.ctg_min <= self.ctg_max && self.ctg_max > 0.0) {
+            return bad(format!(
+                "need 0 <= ctg_min <= ctg_max, ctg_max > 0; got {} and {}",
+                self.ctg_min, self.ctg_max
+            ));
+        }
+        if self.lambda_init > self.lambda_max {
+            return bad(format!(
+                "need 0 <= lambda_init <= lambda_max; got {} and {}",
+                self.lambda_init, self.lambda_max
+            ));
+        }
+        for (name, v) in [
+            ("eps_start", Some(self.eps_start)),
+            ("eps_end", Some(self.eps_end)),
+            ("eps_last_start", self.eps_last_start),
+            ("eps_last_end", self.eps_last_end),
+        ] {
+            if let Some(v) = v
+                && !(0.0..=1.0).contains(&v)
+            {
+                return bad(format!("{name} = {v} must lie in [0, 1]"));
+            }
+        }
+        if self.replay_capacity < longest {
+            return bad(format!(
+                "replay_capacity = {} cannot hold one trajectory of {longest} steps",
+                self.replay_capacity
+            ));
+        }
+        parse_device(&self.device)?;
+        Ok(())
+    }
+}
+
+/// The epsilon-greedy schedule inside one trajectory, at one point of training.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Exploration {
+    /// Epsilon at the trajectory's first step.
+    pub first: f64,
+    /// Epsilon at its last possible step (K x t_max).
+    pub last: f64,
+}
+
+impl Exploration {
+    /// Epsilon at step `t` of a trajectory of at most `horizon` steps, scaled
+    /// by the trajectory's own draw `scale` (1 without `eps_random_scale`).
+    pub fn at(&self, t: usize, horizon: usize, scale: f64) -> f64 {
+        let progress = (t as f64 / horizon.max(1) as f64).min(1.0);
+        scale * (self.first + (self.last - self.first) * progress)
+    }
+}
+
+impl EppoConfig {
+    /// Both ends of the bilevel schedule after `env_steps` of training: each
+    /// anneals linearly from its start to its end value over `eps_decay_steps`.
+    pub fn exploration(&self, env_steps: u64) -> Exploration {
+        let frac = (env_steps as f64 / self.eps_decay_steps.max(1) as f64).min(1.0);
+        let anneal = |from: f64, to: f64| from + (to - from) * frac;
+        Exploration {
+            first: anneal(self.eps_start, self.eps_end),
+            last: anneal(
+                self.eps_last_start.unwrap_or(self.eps_start),
+                self.eps_last_end.unwrap_or(self.eps_end),
+            ),
+        }
+    }
+}
+
+/// `cpu` or `cuda` -> a libtorch device; `cuda` fails clearly without a GPU.
+pub fn parse_device(name: &str) -> Result<Device, EppoError> {
+    match name {
+        "cpu" => Ok(Device::Cpu),
+        "cuda" => {
+            if tch::Cuda::is_available() {
+                Ok(Device::Cuda(0))
+            } else {
+                Err(EppoError::Config(
+                    "device = cuda but libtorch sees no CUDA device (this libtorch is CPU-only or no GPU is present); use --device cpu or link a CUDA libtorch (SPEC section 7)".into(),
+                ))
+            }
+        }
+        other => Err(EppoError::Config(format!(
+            "device = {other:?}: expected cpu or cuda"
+        ))),
+    }
+}
+
+/// What a run with `cfg` on spaces `spec` will allocate, by part (checked
+/// against the machine's memory before anything is built). Parameters count
+/// the online and target networks, their gradients and Adam's two moments;
+/// one batch's activations are the transformer's saved tensors for
+/// `batch_size` sequences of `max_len` steps (plus the target's forward); the
+/// acting cache holds keys and values of `n_envs` trajectories. On `cuda`
+/// only the replay (host memory) is counted: the rest lives on the GPU,
+/// whose memory libtorch reports through no API tch binds.
+pub fn memory_estimate(cfg: &EppoConfig, spec: &NetSpec) -> crate::guard::MemoryEstimate {
+    use crate::guard::{transformer_activation_bytes, transformer_parameters};
+    let f = |x: usize| x as f64;
+    let (d, eh, hh) = (
+        cfg.model.d_model as f64,
+        cfg.encoder_hidden as f64,
+        cfg.head_hidden as f64,
+    );
+    let a = f(spec.act_flat());
+    let (actor_out, critic_in, critic_out) = match spec.n_actions {
+        Some(_) => (a, d, cfg.n_critics as f64 * a),
+        None => (2.0 * a, d + a, cfg.n_critics as f64),
+    };
+    let head = |i: f64, o: f64| i * hh + hh + hh * hh + hh + hh * o + o;
+    let params = f(spec.token_dim()) * eh
+        + eh
+        + eh * d
+        + d
+        + transformer_parameters(&cfg.model)
+        + head(d, actor_out)
+        + 2.0 * head(critic_in, critic_out);
+    let (b, t) = (f(cfg.batch_size), cfg.model.max_len as f64);
+    let step_bytes = 4.0 * (f(spec.obs_dim) + a + 3.0) + 15.0;
+    let mut m = crate::guard::MemoryEstimate {
+        levers:
+            "batch_size, model.max_len, model.d_model, model.n_layers, n_envs or replay_capacity"
+                .into(),
+        ..Default::default()
+    };
+    m.add("replay", f(cfg.replay_capacity) * step_bytes);
+    if cfg.device == "cuda" {
+        return m;
+    }
+    m.add("parameters (online and target)", 2.0 * 4.0 * params);
+    m.add("gradients and Adam moments", 3.0 * 4.0 * params);
+    m.add(
+        "one batch's activations",
+        1.5 * transformer_activation_bytes(&cfg.model, b) + 2.0 * 4.0 * b * t * f(spec.token_dim()),
+    );
+    m.add(
+        "acting cache",
+        4.0 * f(cfg.n_envs) * t * (2.0 * cfg.model.n_layers as f64 * d + f(spec.token_dim())),
+    );
+    m
+}

@@ -1,0 +1,252 @@
+//! The update's terms on one batch: the critic losses Lv and Lc with n-step
+//! TD targets, the actor loss Lp, the multiplier step of Eq. (7) and the
+//! Polyak update of the target networks.
+
+use serde::Serialize;
+use tch::{Kind, Tensor, nn};
+
+use super::config::{EppoConfig, EppoError};
+use super::net::{EppoNet, tanh_gaussian_log_prob, tanh_gaussian_sample};
+use super::replay::Batch;
+
+/// Scalars of one update.
+#[derive(Clone, Copy, Debug, Default, Serialize)]
+pub struct UpdateStats {
+    pub value_loss: f64,
+    pub cost_value_loss: f64,
+    pub policy_loss: f64,
+    pub entropy: f64,
+    pub grad_norm: f64,
+    pub lambda: f64,
+    /// Diagnostics: mean Q(h_t, a_t) of the reward critics on the replayed
+    /// actions, mean reward TD target, and (continuous actions) the actor's
+    /// mean log-std; NaN where not defined.
+    pub q_mean: f64,
+    pub target_mean: f64,
+    pub log_std_mean: f64,
+}
+
+/// What [`losses`] returns besides the three losses and the entropy.
+pub(super) struct LossDiagnostics {
+    pub(super) q_mean: Tensor,
+    pub(super) target_mean: Tensor,
+    pub(super) log_std_mean: Option<Tensor>,
+}
+
+/// Shifts (B, L) left by one along time: out[:, t] = x[:, t + 1], 0 at the end.
+pub(super) fn next_step(x: &Tensor) -> Tensor {
+    let l = x.size()[1];
+    let zero = x.narrow(1, 0, 1).zeros_like(); // (B, 1)
+    Tensor::cat(&[x.narrow(1, 1, l - 1), zero], 1) // (B, L)
+}
+
+pub(super) fn masked_mean(x: &Tensor, mask: &Tensor) -> Tensor {
+    (x * mask).sum(Kind::Float) / mask.sum(Kind::Float).clamp_min(1.0)
+}
+
+/// n-step TD targets, (B, L) each: y1_t = r_t + gamma b_t V'_{t+1} and
+/// y(m)_t = r_t + gamma b_t [y(m-1)_{t+1} if step t + 1 has a target of its
+/// own, else V'_{t+1}], so every sum stops where its bootstrap mask `b`
+/// stops (terminal, trajectory or window end) and falls back to the one-step
+/// bootstrap at a step without a target (truncated, episodes apart).
+/// `v_next` is V'(t + 1) at position t.
+pub(super) fn n_step_targets(
+    r: &Tensor,
+    bootstrap: &Tensor,
+    td_valid: &Tensor,
+    v_next: &Tensor,
+    gamma: f64,
+    n: usize,
+) -> Tensor {
+    let mut y = r + bootstrap * v_next * gamma;
+    let valid_next = next_step(td_valid);
+    for _ in 1..n {
+        let ahead = &valid_next * next_step(&y) + (valid_next.ones_like() - &valid_next) * v_next;
+        y = r + bootstrap * ahead * gamma;
+    }
+    y
+}
+
+/// The three losses on one batch (before any step), and the policy entropy.
+pub(super) fn losses(
+    net: &EppoNet,
+    target: &EppoNet,
+    batch: &Batch,
+    lambda: f64,
+    cfg: &EppoConfig,
+) -> Result<(Tensor, Tensor, Tensor, Tensor, LossDiagnostics), EppoError> {
+    let h = net.encode(&batch.tokens, true)?; // (B, L, D)
+    let c = cfg.n_critics;
+    // Targets from the target networks at t + 1, no gradient.
+    let (v_next, vc_next) = tch::no_grad(|| -> Result<(Tensor, Tensor), EppoError> {
+        let ht = target.encode(&batch.tokens, false)?; // (B, L, D)
+        let (v, vc) =
+            match net.spec.n_actions {
+                Some(_) => {
+                    // Expected value under the target actor: sum_a pi'(a) Q'(h, a).
+                    let pi = target
+                        .actor
+                        .forward(&ht)
+                        .softmax(-1, Kind::Float)
+                        .unsqueeze(2); // (B, L, 1, A)
+                    let q = (target.critic_values(&target.critic, &ht, false) * &pi)
+                        .sum_dim_intlist(-1, false, Kind::Float); // (B, L, C)
+                    let qc = (target.critic_values(&target.cost_critic, &ht, false) * &pi)
+                        .sum_dim_intlist(-1, false, Kind::Float); // (B, L, C)
+                    (q.amin(-1, false), qc.mean_dim(-1, false, Kind::Float))
+                }
+                None => {
+                    let (mean, log_std) = target.gaussian(&ht);
+                    let (a, _) = tanh_gaussian_sample(&mean, &log_std, &mean.randn_like());
+                    let q = target.critic_sa(&target.critic, &ht, &a, false); // (B, L, C)
+                    let qc = target.critic_sa(&target.cost_critic, &ht, &a, false); // (B, L, C)
+                    (q.amin(-1, false), qc.mean_dim(-1, false, Kind::Float))
+                }
+            }; // (B, L) each
+        Ok((next_step(&v), next_step(&vc)))
+    })?;
+    // y = r + gamma * [bootstraps] * V'(t + 1); the bootstrap masks carry the
+    // terminated / truncated / trajectory-end decision made in `make_batch`;
+    // the cost's also stops at every episode end (per-episode constraint).
+    let y = n_step_targets(
+        &batch.rewards,
+        &batch.bootstrap,
+        &batch.td_valid,
+        &v_next,
+        cfg.gamma,
+        cfg.n_step,
+    ); // (B, L)
+    let yc = n_step_targets(
+        &batch.costs,
+        &batch.cost_bootstrap,
+        &batch.td_valid,
+        &vc_next,
+        cfg.gamma,
+        cfg.n_step,
+    ); // (B, L)
+    let td_mask = batch.td_valid.unsqueeze(-1); // (B, L, 1)
+    let mut log_std_mean = None;
+    let (q_taken, qc_taken, policy_loss, entropy) = match net.spec.n_actions {
+        Some(_) => {
+            let q_all = net.critic_values(&net.critic, &h, false); // (B, L, C, A)
+            let qc_all = net.critic_values(&net.cost_critic, &h, false); // (B, L, C, A)
+            let idx = batch
+                .actions
+                .view([batch.actions.size()[0], -1, 1, 1])
+                .expand([-1, -1, c, 1], false); // (B, L) -> (B, L, C, 1)
+            let q_taken = q_all.gather(3, &idx, false).squeeze_dim(3); // (B, L, C)
+            let qc_taken = qc_all.gather(3, &idx, false).squeeze_dim(3); // (B, L, C)
+            // Actor: expectation of -Q + lambda v_e Qc under its own distribution;
+            // critic values are constants here (detached).
+            let logits = net.actor.forward(&h); // (B, L, A)
+            let logp = logits.log_softmax(-1, Kind::Float);
+            let pi = logp.exp();
+            let q = q_all.detach().amin(2, false); // (B, L, A)
+            let qc = qc_all.detach().mean_dim(2, false, Kind::Float); // (B, L, A)
+            let penalty = lambda * cfg.reward_scale;
+            let per_action = q.neg() + qc * batch.violated.unsqueeze(-1) * penalty; // (B, L, A)
+            let entropy = (&pi * &logp).sum_dim_intlist(-1, false, Kind::Float).neg(); // (B, L)
+            let mut objective = (&pi * per_action).sum_dim_intlist(-1, false, Kind::Float)
+                - &entropy * cfg.entropy_coef;
+            if cfg.bc_coef > 0.0 {
+                // Filtered BC: A = Q(a_t) - sum_a pi(a) Q(a), mean over critics.
+                let q_mean = q_all.detach().mean_dim(2, false, Kind::Float); // (B, L, A)
+                let idx = batch.actions.unsqueeze(-1); // (B, L, 1)
+                let q_data = q_mean.gather(2, &idx, false).squeeze_dim(2); // (B, L)
+                let v = (&pi.detach() * &q_mean).sum_dim_intlist(-1, false, Kind::Float); // (B, L)
+                let keep = (q_data - v).gt(0.0).to_kind(Kind::Float); // (B, L)
+                let logp_data = logp.gather(2, &idx, false).squeeze_dim(2); // (B, L)
+                objective -= keep * logp_data * cfg.bc_coef;
+            }
+            (
+                q_taken,
+                qc_taken,
+                masked_mean(&objective, &batch.valid),
+                masked_mean(&entropy, &batch.valid),
+            )
+        }
+        None => {
+            let q_taken = net.critic_sa(&net.critic, &h, &batch.actions, false); // (B, L, C)
+            let qc_taken = net.critic_sa(&net.cost_critic, &h, &batch.actions, false); // (B, L, C)
+            let (mean, log_std) = net.gaussian(&h);
+            log_std_mean = Some(masked_mean(
+                &log_std.detach().mean_dim(-1, false, Kind::Float),
+                &batch.valid,
+            ));
+            let (a_hat, log_prob) = tanh_gaussian_sample(&mean, &log_std, &mean.randn_like());
+            // The critics judge a_hat with frozen parameters and a detached
+            // trajectory encoding: the actor loss moves only the actor (and the
+            // encoder through the actor's input).
+            let hd = h.detach();
+            let q_hat = net.critic_sa(&net.critic, &hd, &a_hat, true); // (B, L, C)
+            let q = q_hat.amin(-1, false); // (B, L)
+            let qc =
+                net.critic_sa(&net.cost_critic, &hd, &a_hat, true)
+                    .mean_dim(-1, false, Kind::Float); // (B, L)
+            let penalty = lambda * cfg.reward_scale;
+            let mut objective =
+                q.neg() + qc * &batch.violated * penalty + &log_prob * cfg.entropy_coef;
+            if cfg.bc_coef > 0.0 {
+                // Filtered BC: A = Q(a_t) - Q(a_hat) (one sample of E_pi),
+                // mean over critics, no gradient anywhere in the filter.
+                let keep = tch::no_grad(|| {
+                    let q_data = q_taken.mean_dim(-1, false, Kind::Float); // (B, L)
+                    let v = q_hat.detach().mean_dim(-1, false, Kind::Float); // (B, L)
+                    (q_data - v).gt(0.0).to_kind(Kind::Float)
+                });
+                let logp_data = tanh_gaussian_log_prob(&mean, &log_std, &batch.actions); // (B, L)
+                objective -= keep * logp_data * cfg.bc_coef;
+            }
+            (
+                q_taken,
+                qc_taken,
+                masked_mean(&objective, &batch.valid),
+                masked_mean(&log_prob.neg(), &batch.valid),
+            )
+        }
+    };
+    let diagnostics = LossDiagnostics {
+        q_mean: masked_mean(
+            &q_taken.detach().mean_dim(-1, false, Kind::Float),
+            &batch.td_valid,
+        ),
+        target_mean: masked_mean(&y, &batch.td_valid),
+        log_std_mean,
+    };
+    let value_loss = masked_mean(
+        &(q_taken - y.unsqueeze(-1)).square(),
+        &td_mask.expand([-1, -1, c], false),
+    );
+    let cost_value_loss = masked_mean(
+        &(qc_taken - yc.unsqueeze(-1)).square(),
+        &td_mask.expand([-1, -1, c], false),
+    );
+    Ok((
+        value_loss,
+        cost_value_loss,
+        policy_loss,
+        entropy,
+        diagnostics,
+    ))
+}
+
+/// Eq. (7): lambda <- clip(lambda + eta * mean_j max_k (C_jk - delta_j), 0, lambda_max).
+pub fn lambda_update(lambda: f64, max_violations: &[f32], eta: f64, lambda_max: f64) -> f64 {
+    if max_violations.is_empty() {
+        return lambda;
+    }
+    let g = max_violations.iter().map(|&x| f64::from(x)).sum::<f64>() / max_violations.len() as f64;
+    (lambda + eta * g).clamp(0.0, lambda_max)
+}
+
+/// target <- (1 - tau) target + tau online, for every variable by name.
+pub(super) fn polyak(target: &nn::VarStore, online: &nn::VarStore, tau: f64) {
+    let src = online.variables();
+    tch::no_grad(|| {
+        for (name, mut t) in target.variables() {
+            if let Some(o) = src.get(&name) {
+                let _ = t.g_mul_scalar_(1.0 - tau).g_add_(&(o * tau));
+            }
+        }
+    });
+}

@@ -1,0 +1,323 @@
+//! Collected trajectories, the replay buffer and batch assembly: the token of
+//! each step ([`push_token`], one construction for collection, training and
+//! evaluation) and the masks that keep `terminated` and `truncated` apart all
+//! the way into the TD targets.
+
+use std::collections::VecDeque;
+
+use rand::Rng;
+use rand_chacha::ChaCha8Rng;
+use tch::{Device, Tensor};
+
+use super::config::EppoConfig;
+use super::net::NetSpec;
+use crate::tokens::{self, StepToken};
+
+/// K episodes in one task with one budget, as collected.
+#[derive(Clone, Debug, Default)]
+pub struct Trajectory {
+    /// The per-episode cost budget delta.
+    pub budget: f32,
+    /// (T, obs_dim) observations s_t.
+    pub obs: Vec<f32>,
+    /// (T, obs_dim) the observation a_t led to: s_{t+1}, or the episode's
+    /// final observation where a_t ended it (the next s_t is then a new start).
+    pub next_obs: Vec<f32>,
+    /// (T, act_flat) actions a_t as the network sees them (one-hot, or in [-1, 1]).
+    pub actions: Vec<f32>,
+    /// Discrete action indices (empty for continuous).
+    pub action_idx: Vec<i64>,
+    /// (T,) reward r_{t+1} and cost c_{t+1} received for a_t.
+    pub rewards: Vec<f32>,
+    pub costs: Vec<f32>,
+    /// (T,) CTG_t before acting at t.
+    pub ctg: Vec<f32>,
+    /// (T,) s_t is an episode's first state.
+    pub start: Vec<bool>,
+    /// (T,) the step ended its episode at the goal (terminal: nothing to bootstrap past it).
+    pub terminated: Vec<bool>,
+    /// (T,) the step ended its episode at the time limit (not terminal).
+    pub truncated: Vec<bool>,
+    /// (T,) index of the episode the step belongs to.
+    pub episode: Vec<u32>,
+    /// Per episode: return, cost, and whether it ended at the goal.
+    pub episode_returns: Vec<f32>,
+    pub episode_costs: Vec<f32>,
+    pub episode_success: Vec<bool>,
+}
+
+impl Trajectory {
+    /// Steps in the trajectory.
+    pub fn len(&self) -> usize {
+        self.rewards.len()
+    }
+
+    /// True when empty.
+    pub fn is_empty(&self) -> bool {
+        self.rewards.is_empty()
+    }
+
+    /// max_k (C_k - delta): the trajectory's term in Eq. (7).
+    pub fn max_violation(&self) -> f32 {
+        self.episode_costs
+            .iter()
+            .map(|c| c - self.budget)
+            .fold(f32::NEG_INFINITY, f32::max)
+    }
+}
+
+/// Whole trajectories, oldest evicted first once `capacity` steps are exceeded.
+#[derive(Debug, Default)]
+pub struct Replay {
+    pub(super) trajectories: VecDeque<Trajectory>,
+    steps: usize,
+    capacity: usize,
+}
+
+impl Replay {
+    pub fn new(capacity: usize) -> Self {
+        Replay {
+            trajectories: VecDeque::new(),
+            steps: 0,
+            capacity,
+        }
+    }
+
+    pub fn push(&mut self, t: Trajectory) {
+        self.steps += t.len();
+        self.trajectories.push_back(t);
+        while self.steps > self.capacity {
+            match self.trajectories.pop_front() {
+                Some(old) => self.steps -= old.len(),
+                None => break,
+            }
+        }
+    }
+
+    pub fn len(&self) -> usize {
+        self.trajectories.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.trajectories.is_empty()
+    }
+
+    /// Steps held.
+    pub fn steps(&self) -> usize {
+        self.steps
+    }
+
+    pub(super) fn sample<'a>(&'a self, n: usize, rng: &mut ChaCha8Rng) -> Vec<&'a Trajectory> {
+        (0..n)
+            .map(|_| &self.trajectories[rng.gen_range(0..self.trajectories.len())])
+            .collect()
+    }
+}
+
+/// Writes one token ([`crate::tokens`], shared with supervised pretraining):
+/// obs s_t and the observation a_{t-1} arrived at (both normalised), a_{t-1},
+/// r_t (scaled), c_t, CTG_t / ctg_max, start flag.
+#[allow(clippy::too_many_arguments)]
+pub(super) fn push_token(
+    spec: &NetSpec,
+    cfg: &EppoConfig,
+    out: &mut Vec<f32>,
+    obs: &[f32],
+    arrived_obs: &[f32],
+    prev_action: &[f32],
+    reward: f32,
+    cost: f32,
+    ctg: f32,
+    start: bool,
+) {
+    let step = StepToken {
+        obs,
+        arrived_obs,
+        prev_action,
+        reward,
+        cost,
+        to_go: &[ctg / cfg.ctg_max],
+        start,
+    };
+    tokens::push_token(
+        &step,
+        cfg.reward_scale as f32,
+        |o, out| spec.normalise_obs(o, out),
+        out,
+    );
+}
+
+/// A training batch of B windows of length L (right-padded).
+pub(super) struct Batch {
+    /// (B, L, token_dim)
+    pub(super) tokens: Tensor,
+    /// (B, L) discrete action indices, or (B, L, A) continuous actions.
+    pub(super) actions: Tensor,
+    /// (B, L) reward r_{t+1} (scaled) and cost c_{t+1}.
+    pub(super) rewards: Tensor,
+    pub(super) costs: Tensor,
+    /// (B, L) 1 where the step's episode exceeded the budget (v_e).
+    pub(super) violated: Tensor,
+    /// (B, L) 1 on real (not padded) steps: the actor loss.
+    pub(super) valid: Tensor,
+    /// (B, L) 1 where a TD target exists for the step: the critic losses.
+    pub(super) td_valid: Tensor,
+    /// (B, L) 1 where the reward target bootstraps from position t + 1.
+    pub(super) bootstrap: Tensor,
+    /// (B, L) 1 where the cost target bootstraps from position t + 1: never
+    /// past an episode's end, since the budget binds each episode on its own
+    /// (Eq. 6, 7): a violation charges only its own episode.
+    pub(super) cost_bootstrap: Tensor,
+    /// (B,) max_k (C_k - delta) of each sampled trajectory (Eq. 7).
+    pub(super) max_violation: Vec<f32>,
+}
+
+pub(super) fn make_batch(
+    trajs: &[&Trajectory],
+    cfg: &EppoConfig,
+    spec: &NetSpec,
+    rng: &mut ChaCha8Rng,
+    device: Device,
+) -> Batch {
+    let seq = cfg.model.max_len as usize;
+    // Each trajectory contributes a window of at most `seq` steps.
+    let windows: Vec<(usize, usize)> = trajs
+        .iter()
+        .map(|t| {
+            let len = t.len().min(seq);
+            let start = if t.len() > seq {
+                rng.gen_range(0..=t.len() - seq)
+            } else {
+                0
+            };
+            (start, len)
+        })
+        .collect();
+    let b = trajs.len();
+    let l = windows.iter().map(|w| w.1).max().unwrap_or(1);
+    let (dtok, a) = (spec.token_dim(), spec.act_flat());
+    let mut tokens = Vec::with_capacity(b * l * dtok);
+    let mut acts_f = Vec::with_capacity(b * l * a);
+    let mut acts_i = Vec::with_capacity(b * l);
+    let mut rew = vec![0f32; b * l];
+    let mut cost = vec![0f32; b * l];
+    let mut viol = vec![0f32; b * l];
+    let mut valid = vec![0f32; b * l];
+    let mut td_valid = vec![0f32; b * l];
+    let mut boot = vec![0f32; b * l];
+    let mut cost_boot = vec![0f32; b * l];
+    let zeros_a = vec![0f32; a];
+    let zeros_o = vec![0f32; spec.obs_dim];
+    for (j, (t, &(s, len))) in trajs.iter().zip(&windows).enumerate() {
+        let violated: Vec<bool> = t.episode_costs.iter().map(|&c| c > t.budget).collect();
+        for i in 0..l {
+            let k = j * l + i;
+            if i >= len {
+                // Padding: a zero token after the end; masked out everywhere.
+                push_token(
+                    spec,
+                    cfg,
+                    &mut tokens,
+                    &zeros_o,
+                    &zeros_o,
+                    &zeros_a,
+                    0.0,
+                    0.0,
+                    0.0,
+                    false,
+                );
+                acts_f.extend_from_slice(&zeros_a);
+                acts_i.push(0);
+                continue;
+            }
+            let step = s + i;
+            let obs = &t.obs[step * spec.obs_dim..(step + 1) * spec.obs_dim];
+            let od = spec.obs_dim;
+            let (arrived, prev, r, c) = if step == 0 {
+                (&zeros_o[..], &zeros_a[..], 0.0, 0.0)
+            } else {
+                (
+                    &t.next_obs[(step - 1) * od..step * od],
+                    &t.actions[(step - 1) * a..step * a],
+                    t.rewards[step - 1],
+                    t.costs[step - 1],
+                )
+            };
+            push_token(
+                spec,
+                cfg,
+                &mut tokens,
+                obs,
+                arrived,
+                prev,
+                r,
+                c,
+                t.ctg[step],
+                t.start[step],
+            );
+            acts_f.extend_from_slice(&t.actions[step * a..(step + 1) * a]);
+            acts_i.push(t.action_idx.get(step).copied().unwrap_or(0));
+            rew[k] = t.rewards[step] * cfg.reward_scale as f32;
+            cost[k] = t.costs[step];
+            viol[k] = if violated[t.episode[step] as usize] {
+                1.0
+            } else {
+                0.0
+            };
+            valid[k] = 1.0;
+            let last_of_trajectory = step + 1 == t.len();
+            let next_in_window = i + 1 < len;
+            let (has_target, bootstraps) = if cfg.bootstrap_across_episodes {
+                // Meta-RL view: an episode's end (terminated at the goal or
+                // truncated at the time limit) leads to the next episode's
+                // first state, which is the next token: bootstrap through it.
+                // Only the trajectory's end stops the sum of K returns.
+                if last_of_trajectory {
+                    (true, false)
+                } else {
+                    (next_in_window, next_in_window)
+                }
+            } else if t.terminated[step] {
+                // Terminated (goal): a true terminal state, target = r alone.
+                (true, false)
+            } else if t.truncated[step] {
+                // Truncated (time limit): the value goes on past the final
+                // state, but that state is not a token (the next token starts
+                // another episode), so the step has no target and is skipped.
+                (false, false)
+            } else {
+                (next_in_window, next_in_window)
+            };
+            td_valid[k] = if has_target { 1.0 } else { 0.0 };
+            boot[k] = if bootstraps { 1.0 } else { 0.0 };
+            let episode_ends = t.terminated[step] || t.truncated[step];
+            cost_boot[k] = if bootstraps && !episode_ends {
+                1.0
+            } else {
+                0.0
+            };
+        }
+    }
+    let (bi, li) = (b as i64, l as i64);
+    let f = |v: &[f32]| Tensor::from_slice(v).view([bi, li]).to_device(device); // (B*L,) -> (B, L)
+    let actions = match spec.n_actions {
+        Some(_) => Tensor::from_slice(&acts_i).view([bi, li]).to_device(device), // (B, L)
+        None => Tensor::from_slice(&acts_f)
+            .view([bi, li, a as i64])
+            .to_device(device), // (B, L, A)
+    };
+    Batch {
+        tokens: Tensor::from_slice(&tokens)
+            .view([bi, li, dtok as i64])
+            .to_device(device), // (B, L, token_dim)
+        actions,
+        rewards: f(&rew),
+        costs: f(&cost),
+        violated: f(&viol),
+        valid: f(&valid),
+        td_valid: f(&td_valid),
+        bootstrap: f(&boot),
+        cost_bootstrap: f(&cost_boot),
+        max_violation: trajs.iter().map(|t| t.max_violation()).collect(),
+    }
+}

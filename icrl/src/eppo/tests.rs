@@ -1,0 +1,738 @@
+//! EPPO's tests: collection, the losses and their masks, acting through
+//! the cache, determinism, and a run end to end (pretrain, resume, load).
+
+use rand::SeedableRng;
+use rand_chacha::ChaCha8Rng;
+use tch::{Device, Kind, Tensor};
+
+use safety_envs::{EnvName, EnvOptions, Orientation, VecEnv, make_env, sample_task, spawn_config};
+
+use super::collect::{Acting, EnvActions, Policy, sample_actions};
+use super::losses::{losses, n_step_targets};
+use super::net::{tanh_gaussian_log_prob, tanh_gaussian_sample};
+use super::replay::{Batch, make_batch};
+use super::*;
+use crate::agent::{Actions, Conditioning, InContextAgent, StepInput};
+use crate::model::Positions;
+use crate::task_seeds::pretrain_task_seed;
+
+/// A tiny configuration: trajectories of 2 episodes of 6 steps (also
+/// used by the evaluation tests).
+pub(crate) fn tiny() -> EppoConfig {
+    let mut table = crate::presets::preset_table("eppo", "darkroom", "quick").unwrap();
+    let sets = [
+        "max_episode_steps=6",
+        "k_min=2",
+        "k_max=2",
+        "n_envs=3",
+        "batch_size=3",
+        "replay_capacity=1000",
+        "encoder_hidden=16",
+        "head_hidden=16",
+        "model.d_model=16",
+        "model.n_heads=2",
+        "model.n_layers=1",
+        "model.d_ff=32",
+        "model.max_len=12",
+        "total_updates=4",
+        "updates_per_round=2",
+        "learning_starts=0",
+        "checkpoint_every=2",
+    ]
+    .map(String::from);
+    crate::presets::apply_overrides(&mut table, &sets).unwrap();
+    crate::presets::resolve("tiny", table).unwrap()
+}
+
+fn tiny_learner(seed: u64) -> (Learner, VecEnv) {
+    let mut cfg = tiny();
+    cfg.seed = seed;
+    let learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+    let envs = (0..cfg.n_envs)
+        .map(|_| {
+            make_env(
+                EnvName::DarkRoom,
+                &EnvOptions {
+                    max_episode_steps: Some(cfg.max_episode_steps),
+                    physics_steps_per_action: cfg.physics_steps_per_action,
+                },
+            )
+            .unwrap()
+        })
+        .collect();
+    (learner, VecEnv::new(envs, 1, true).unwrap())
+}
+
+fn to_vec(t: &Tensor) -> Vec<f32> {
+    Vec::<f32>::try_from(&t.to_kind(Kind::Float).view([-1])).unwrap()
+}
+
+#[test]
+fn collected_trajectories_follow_algorithm_1() {
+    let (mut learner, mut venv) = tiny_learner(0);
+    let stats = learner.collect(&mut venv).unwrap();
+    assert_eq!(stats.trajectories, 3);
+    assert_eq!(learner.replay.len(), 3);
+    for t in &learner.replay.trajectories {
+        assert_eq!(t.episode_returns.len(), 2, "K = 2 episodes");
+        assert!(t.budget >= 1.0 && t.budget <= 15.0);
+        assert!(t.len() <= 12 && t.start[0]);
+        for s in 0..t.len() {
+            // CTG restarts at the budget each episode and decreases by costs.
+            let expected = if t.start[s] {
+                t.budget
+            } else {
+                t.ctg[s - 1] - t.costs[s - 1]
+            };
+            assert_eq!(t.ctg[s], expected, "step {s}");
+            assert!(!(t.terminated[s] && t.truncated[s]));
+            assert_eq!(
+                t.terminated[s],
+                t.rewards[s] > 0.0,
+                "the goal reward ends the episode"
+            );
+        }
+        let ends = (0..t.len())
+            .filter(|&s| t.terminated[s] || t.truncated[s])
+            .count();
+        assert_eq!(ends, 2);
+    }
+}
+
+#[test]
+fn the_goal_enters_the_context_with_its_reward() {
+    // One fixed task (the ladder's first rung): collect until an episode
+    // ends at the goal, then look at the token after it.
+    let mut cfg = tiny();
+    cfg.task_pool = 1;
+    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+    let goal = sample_task(
+        &spawn_config(EnvName::DarkRoom),
+        Orientation::Centre,
+        pretrain_task_seed(cfg.seed, 0),
+    )
+    .unwrap()
+    .goal;
+    let goal_obs = [goal.row as f32, goal.col as f32];
+    let (_, mut venv) = tiny_learner(0);
+    let mut checked = 0;
+    for _ in 0..300 {
+        learner.collect(&mut venv).unwrap();
+        if learner
+            .replay
+            .trajectories
+            .iter()
+            .any(|t| t.terminated.contains(&true))
+        {
+            break;
+        }
+    }
+    let norm = |x: f32| 2.0 * x / 8.0 - 1.0; // 9x9 grid: [0, 8] -> [-1, 1]
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    for t in &learner.replay.trajectories {
+        let batch = make_batch(&[t], &cfg, &learner.spec, &mut rng, Device::Cpu);
+        let tok = to_vec(&batch.tokens);
+        let d = learner.spec.token_dim();
+        for s in (0..t.len() - 1).filter(|&s| t.terminated[s]) {
+            assert_eq!(&t.next_obs[2 * s..2 * s + 2], &goal_obs, "step {s}");
+            let next = &tok[(s + 1) * d..(s + 2) * d];
+            // The token carrying reward 1: the new episode's start as the
+            // observation, the goal as where the last action arrived.
+            assert_eq!(next[2..4], [norm(goal_obs[0]), norm(goal_obs[1])]);
+            assert_eq!(next[0..2], [0.0, 0.0], "the centre start");
+            assert_eq!(next[2 + 2 + 5], 10.0, "reward x reward_scale");
+            assert_eq!(next[d - 1], 1.0, "episode start flag");
+            checked += 1;
+        }
+    }
+    // A pool of one: every goal reached above was the same task's.
+    assert!(checked > 0, "no episode reached the goal in 300 rounds");
+}
+
+#[test]
+fn exploration_is_bilevel() {
+    let mut cfg = tiny();
+    cfg.eps_start = 1.0;
+    cfg.eps_end = 0.4;
+    cfg.eps_last_start = Some(0.6);
+    cfg.eps_last_end = Some(0.0);
+    cfg.eps_decay_steps = 1000;
+    let start = cfg.exploration(0);
+    assert_eq!((start.first, start.last), (1.0, 0.6));
+    let mid = cfg.exploration(500);
+    assert!((mid.first - 0.7).abs() < 1e-12 && (mid.last - 0.3).abs() < 1e-12);
+    let end = cfg.exploration(10_000);
+    assert!(
+        (end.first - 0.4).abs() < 1e-12 && end.last == 0.0,
+        "annealed, then held"
+    );
+    // Inside a trajectory: linear from the first to the last step, scaled.
+    assert!((end.at(0, 100, 1.0) - 0.4).abs() < 1e-12);
+    assert!((end.at(50, 100, 1.0) - 0.2).abs() < 1e-12);
+    assert!(end.at(100, 100, 1.0).abs() < 1e-12);
+    assert!((end.at(0, 100, 0.5) - 0.2).abs() < 1e-12);
+    // Without the last-step values, epsilon is flat inside a trajectory.
+    cfg.eps_last_start = None;
+    cfg.eps_last_end = None;
+    let flat = cfg.exploration(500);
+    assert_eq!(flat.first, flat.last);
+    // An epsilon outside [0, 1] is refused by name.
+    assert!(cfg.validate().is_ok());
+    cfg.eps_last_end = Some(1.5);
+    assert!(
+        cfg.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("eps_last_end")
+    );
+}
+
+#[test]
+fn search_rates_count_discovery_and_revisits() {
+    let a = [false, true, true, false];
+    let b = [false, false, false, false];
+    let c = [true, true, false, true];
+    let (disc, rev, found) = search_rates([&a[..], &b[..], &c[..]].into_iter());
+    // After episode 1: a discovers at 2 (1 of a's 1 undiscovered tries),
+    // b never (3 tries); a revisits 1 of 2, c 2 of 3.
+    assert!((disc - 1.0 / 4.0).abs() < 1e-12, "{disc}");
+    assert!((rev - 3.0 / 5.0).abs() < 1e-12, "{rev}");
+    assert!((found - 2.0 / 3.0).abs() < 1e-12);
+    assert!(search_rates([&b[..1]].into_iter()).0.is_nan());
+}
+
+#[test]
+fn critic_losses_fall_on_a_fixed_batch() {
+    let (mut learner, mut venv) = tiny_learner(1);
+    learner.collect(&mut venv).unwrap();
+    let trajs: Vec<&Trajectory> = learner.replay.trajectories.iter().collect();
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let batch = make_batch(&trajs, &learner.cfg, &learner.spec, &mut rng, Device::Cpu);
+    let mut first = None;
+    let mut last = (0.0, 0.0);
+    for _ in 0..300 {
+        let (lv, lc, ..) =
+            losses(&learner.net, &learner.target, &batch, 0.0, &learner.cfg).unwrap();
+        let now = (lv.double_value(&[]), lc.double_value(&[]));
+        first.get_or_insert(now);
+        last = now;
+        learner.opt.backward_step(&(lv + lc));
+    }
+    let first = first.unwrap();
+    assert!(last.0 < 0.3 * first.0, "value loss {first:?} -> {last:?}");
+    assert!(
+        last.1 < 0.3 * first.1 || last.1 < 1e-3,
+        "cost value loss {first:?} -> {last:?}"
+    );
+}
+
+#[test]
+fn lambda_rises_falls_and_respects_the_cap() {
+    let mut lambda = 0.0;
+    let mut seen = vec![];
+    for _ in 0..50 {
+        lambda = lambda_update(lambda, &[3.0, -1.0, 4.0], 0.1, 1.5);
+        seen.push(lambda);
+    }
+    assert!(
+        seen.windows(2).take(5).all(|w| w[1] > w[0]),
+        "rises while costs exceed the budget"
+    );
+    assert_eq!(lambda, 1.5, "capped");
+    assert!(seen.iter().all(|&l| l <= 1.5));
+    for _ in 0..50 {
+        lambda = lambda_update(lambda, &[-2.0, -0.5], 0.1, 1.5);
+    }
+    assert_eq!(
+        lambda, 0.0,
+        "falls back to 0 once every episode is within budget"
+    );
+    // Eq. (7) takes the worst episode of each trajectory, then the mean.
+    let t = Trajectory {
+        budget: 2.0,
+        episode_costs: vec![1.0, 5.0, 0.0],
+        ..Default::default()
+    };
+    assert_eq!(t.max_violation(), 3.0);
+}
+
+#[test]
+fn violation_flag_gates_the_cost_penalty() {
+    let (mut learner, mut venv) = tiny_learner(2);
+    learner.collect(&mut venv).unwrap();
+    let trajs: Vec<&Trajectory> = learner.replay.trajectories.iter().collect();
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let mut batch = make_batch(&trajs, &learner.cfg, &learner.spec, &mut rng, Device::Cpu);
+    let policy_loss = |batch: &Batch, lambda: f64| {
+        tch::manual_seed(0);
+        let (_, _, lp, ..) =
+            losses(&learner.net, &learner.target, batch, lambda, &learner.cfg).unwrap();
+        lp.double_value(&[])
+    };
+    batch.violated = batch.valid.zeros_like();
+    let (clean_0, clean_5) = (policy_loss(&batch, 0.0), policy_loss(&batch, 5.0));
+    assert!(
+        (clean_0 - clean_5).abs() < 1e-4,
+        "no violation: lambda has no effect"
+    );
+    batch.violated = batch.valid.ones_like();
+    let (viol_0, viol_5) = (policy_loss(&batch, 0.0), policy_loss(&batch, 5.0));
+    assert!((viol_0 - clean_0).abs() < 1e-4);
+    assert!(
+        (viol_5 - viol_0).abs() > 1e-4,
+        "violated episodes pay lambda * Qc"
+    );
+}
+
+#[test]
+fn terminated_and_truncated_reach_the_targets_apart() {
+    let cfg = tiny();
+    let spec = NetSpec {
+        obs_dim: 1,
+        obs_low: vec![0.0],
+        obs_high: vec![1.0],
+        n_actions: Some(2),
+        act_low: vec![],
+        act_high: vec![],
+    };
+    // Episode 0: 2 steps, truncated at 0.9. Episode 1: 2 steps,
+    // terminated at the goal, 1.0.
+    let t = Trajectory {
+        budget: 1.0,
+        obs: vec![0.0, 0.25, 0.5, 0.75],
+        next_obs: vec![0.25, 0.9, 0.75, 1.0],
+        actions: vec![1.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 1.0],
+        action_idx: vec![0, 0, 1, 1],
+        rewards: vec![0.0, 0.0, 0.0, 1.0],
+        costs: vec![1.0, 1.0, 0.0, 0.0],
+        ctg: vec![1.0, 0.0, 1.0, 1.0],
+        start: vec![true, false, true, false],
+        terminated: vec![false, false, false, true],
+        truncated: vec![false, true, false, false],
+        episode: vec![0, 0, 1, 1],
+        episode_returns: vec![0.0, 1.0],
+        episode_costs: vec![2.0, 0.0],
+        episode_success: vec![false, true],
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let mut across = cfg.clone();
+    across.bootstrap_across_episodes = true;
+    let b = make_batch(&[&t], &across, &spec, &mut rng, Device::Cpu);
+    assert_eq!(to_vec(&b.bootstrap), vec![1.0, 1.0, 1.0, 0.0]);
+    // The cost's target stops at every episode end: episode 0's costs
+    // are not charged with episode 1's.
+    assert_eq!(to_vec(&b.cost_bootstrap), vec![1.0, 0.0, 1.0, 0.0]);
+    assert_eq!(to_vec(&b.td_valid), vec![1.0, 1.0, 1.0, 1.0]);
+    assert_eq!(
+        to_vec(&b.violated),
+        vec![1.0, 1.0, 0.0, 0.0],
+        "v_e per episode: 2 > 1, 0 <= 1"
+    );
+    let mut within = cfg;
+    within.bootstrap_across_episodes = false;
+    let b = make_batch(&[&t], &within, &spec, &mut rng, Device::Cpu);
+    // Truncated: no target (its final state is not a token); terminated: r alone.
+    assert_eq!(to_vec(&b.td_valid), vec![1.0, 0.0, 1.0, 1.0]);
+    assert_eq!(to_vec(&b.bootstrap), vec![1.0, 0.0, 1.0, 0.0]);
+    // Tokens carry the observation, the observation the previous action
+    // arrived at, the previous action, reward, cost, CTG and start flag.
+    let tok = to_vec(&b.tokens);
+    let d = spec.token_dim();
+    assert_eq!(
+        &tok[3 * d..4 * d],
+        &[0.5, 0.5, 0.0, 1.0, 0.0, 0.0, 1.0 / 15.0, 0.0]
+    );
+    // An episode's first token shows where the last one ended (0.9 -> 0.8
+    // normalised), not only the new start (0.5 -> 0).
+    assert_eq!(tok[2 * d], 0.0);
+    assert!((tok[2 * d + 1] - 0.8).abs() < 1e-6, "{}", tok[2 * d + 1]);
+    assert_eq!(
+        &tok[..2],
+        &[-1.0, -1.0],
+        "nothing arrived before the first step"
+    );
+}
+
+#[test]
+fn acting_through_the_cache_matches_the_full_forward() {
+    let (mut learner, mut venv) = tiny_learner(3);
+    learner.collect(&mut venv).unwrap();
+    let t = learner.replay.trajectories[0].clone();
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let batch = make_batch(&[&t], &learner.cfg, &learner.spec, &mut rng, Device::Cpu);
+    let full = tch::no_grad(|| {
+        learner
+            .net
+            .actor
+            .forward(&learner.net.encode(&batch.tokens, false).unwrap())
+    })
+    .softmax(-1, Kind::Float); // (1, T, A)
+    let mut acting = Acting::new(&learner.net, &learner.spec, &learner.cfg, &[t.budget]);
+    let (od, a) = (learner.spec.obs_dim, learner.spec.act_flat());
+    for s in 0..t.len() {
+        let zeros = vec![0f32; a];
+        let (prev, r, c) = if s == 0 {
+            (&zeros[..], 0.0, 0.0)
+        } else {
+            (
+                &t.actions[(s - 1) * a..s * a],
+                t.rewards[s - 1],
+                t.costs[s - 1],
+            )
+        };
+        let zeros_o = vec![0f32; od];
+        let arrived = if s == 0 {
+            &zeros_o[..]
+        } else {
+            &t.next_obs[(s - 1) * od..s * od]
+        };
+        let input = StepInput {
+            obs: &t.obs[s * od..(s + 1) * od],
+            arrived_obs: arrived,
+            prev_action: prev,
+            reward: &[r],
+            cost: &[c],
+            episode_start: &[t.start[s]],
+        };
+        assert_eq!(acting.observe(&input), vec![t.ctg[s]]);
+        let Policy::Discrete(p, _) = acting.policy(&learner.net, &input).unwrap() else {
+            panic!()
+        };
+        let expected = to_vec(&full.narrow(1, s as i64, 1));
+        for (x, y) in p.iter().zip(&expected) {
+            assert!((x - y).abs() < 1e-5, "step {s}: {p:?} vs {expected:?}");
+        }
+    }
+}
+
+#[test]
+fn same_seed_same_run_on_cpu() {
+    let run = |seed| {
+        let (mut learner, mut venv) = tiny_learner(seed);
+        let mut out = vec![];
+        for _ in 0..2 {
+            let r = learner.collect(&mut venv).unwrap();
+            out.push(r.mean_cost);
+            let u = learner.update().unwrap();
+            out.extend([u.value_loss, u.cost_value_loss, u.policy_loss, u.lambda]);
+        }
+        let w = learner.vs.variables()["transformer.h.0.attn.c_attn.weight"]
+            .sum(Kind::Float)
+            .double_value(&[]);
+        out.push(w);
+        out
+    };
+    tch::set_num_threads(1);
+    assert_eq!(run(5), run(5));
+    assert_ne!(run(5), run(6));
+}
+
+#[test]
+fn continuous_shapes_and_gradients() {
+    let mut cfg = tiny();
+    cfg.model.positions = Positions::Learned;
+    let spec = NetSpec {
+        obs_dim: 3,
+        obs_low: vec![f32::NEG_INFINITY; 3],
+        obs_high: vec![f32::INFINITY; 3],
+        n_actions: None,
+        act_low: vec![-1.0, -1.0],
+        act_high: vec![1.0, 1.0],
+    };
+    let vs = nn::VarStore::new(Device::Cpu);
+    let net = EppoNet::new(vs.root(), &cfg, &spec).unwrap();
+    let tvs = nn::VarStore::new(Device::Cpu);
+    let target = EppoNet::new(tvs.root(), &cfg, &spec).unwrap();
+    let n = 5;
+    let t = Trajectory {
+        budget: 10.0,
+        obs: (0..n * 3).map(|i| i as f32 * 0.1).collect(),
+        next_obs: (3..n * 3 + 3).map(|i| i as f32 * 0.1).collect(),
+        actions: (0..n * 2).map(|i| (i as f32 * 0.37).sin()).collect(),
+        action_idx: vec![],
+        rewards: vec![0.0, 0.0, 0.0, 0.0, 1.0],
+        costs: vec![0.0, 1.0, 1.0, 0.0, 0.0],
+        ctg: vec![10.0, 10.0, 9.0, 8.0, 8.0],
+        start: vec![true, false, false, false, false],
+        terminated: vec![false, false, false, false, true],
+        truncated: vec![false; 5],
+        episode: vec![0; 5],
+        episode_returns: vec![1.0],
+        episode_costs: vec![2.0],
+        episode_success: vec![true],
+    };
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let batch = make_batch(&[&t, &t], &cfg, &spec, &mut rng, Device::Cpu);
+    assert_eq!(batch.tokens.size(), vec![2, 5, 3 + 3 + 2 + 4]);
+    assert_eq!(batch.actions.size(), vec![2, 5, 2]);
+    let (lv, lc, lp, ..) = losses(&net, &target, &batch, 1.0, &cfg).unwrap();
+    let mut opt = Adam::new(
+        &vs,
+        AdamConfig {
+            lr: 1e-3,
+            beta1: 0.9,
+            beta2: 0.99,
+            eps: 1e-8,
+            grad_clip: Some(1.0),
+        },
+    );
+    // The actor loss alone leaves both critics untouched.
+    opt.zero_grad();
+    lp.backward();
+    let vars = vs.variables();
+    assert!(
+        !vars["critic.l1.weight"].grad().defined()
+            || vars["critic.l1.weight"]
+                .grad()
+                .abs()
+                .sum(Kind::Float)
+                .double_value(&[])
+                == 0.0
+    );
+    assert!(
+        vars["actor.l1.weight"]
+            .grad()
+            .abs()
+            .sum(Kind::Float)
+            .double_value(&[])
+            > 0.0
+    );
+    let (lv2, lc2, lp2, ..) = losses(&net, &target, &batch, 1.0, &cfg).unwrap();
+    assert!(opt.backward_step(&(lv2 + lc2 + lp2)) > 0.0);
+    assert!(lv.double_value(&[]).is_finite() && lc.double_value(&[]).is_finite());
+    // Acting: actions land inside the box.
+    let mut acting = Acting::new(&net, &spec, &cfg, &[10.0, 20.0]);
+    let input = StepInput {
+        obs: &[0.0; 6],
+        arrived_obs: &[0.0; 6],
+        prev_action: &[0.0; 4],
+        reward: &[0.0; 2],
+        cost: &[0.0; 2],
+        episode_start: &[true; 2],
+    };
+    acting.observe(&input);
+    let policy = acting.policy(&net, &input).unwrap();
+    let (_, env) = sample_actions(&policy, &spec, &[], false, &mut rng);
+    let EnvActions::Continuous(v) = env else {
+        panic!()
+    };
+    assert_eq!(v.len(), 4);
+    assert!(v.iter().all(|x| (-1.0..=1.0).contains(x)));
+}
+
+#[test]
+fn tanh_gaussian_log_prob_matches_the_sampler() {
+    tch::manual_seed(3);
+    let mean = Tensor::randn([4, 5, 2], (Kind::Float, Device::Cpu));
+    let log_std = Tensor::randn([4, 5, 2], (Kind::Float, Device::Cpu)) * 0.5 - 0.5;
+    let noise = Tensor::randn([4, 5, 2], (Kind::Float, Device::Cpu));
+    let (a, want) = tanh_gaussian_sample(&mean, &log_std, &noise);
+    let got = tanh_gaussian_log_prob(&mean, &log_std, &a);
+    let err = (got - want).abs().max().double_value(&[]);
+    assert!(err < 1e-2, "max |log pi difference| {err}");
+    // Saturated f32 actions (exactly +-1) stay finite.
+    let edge = Tensor::from_slice(&[1.0f32, -1.0]).view([1, 2]);
+    let lp = tanh_gaussian_log_prob(
+        &mean.narrow(0, 0, 1).narrow(1, 0, 1).view([1, 2]),
+        &log_std.narrow(0, 0, 1).narrow(1, 0, 1).view([1, 2]),
+        &edge,
+    );
+    assert!(lp.double_value(&[0]).is_finite());
+}
+
+#[test]
+fn filtered_bc_raises_the_log_prob_of_kept_replayed_actions() {
+    for discrete in [true, false] {
+        let (mut learner, mut venv) = tiny_learner(2);
+        learner.collect(&mut venv).unwrap();
+        let trajs: Vec<&Trajectory> = learner.replay.trajectories.iter().collect();
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let mut cfg = learner.cfg.clone();
+        cfg.entropy_coef = 0.0;
+        let (batch, net, target, vs) = if discrete {
+            let batch = make_batch(&trajs, &cfg, &learner.spec, &mut rng, Device::Cpu);
+            let vs = nn::VarStore::new(Device::Cpu);
+            let net = EppoNet::new(vs.root(), &cfg, &learner.spec).unwrap();
+            let tvs = nn::VarStore::new(Device::Cpu);
+            let target = EppoNet::new(tvs.root(), &cfg, &learner.spec).unwrap();
+            (batch, net, target, vs)
+        } else {
+            // The same steps with a 2-D action in [-1, 1] per step.
+            let spec = NetSpec {
+                n_actions: None,
+                act_low: vec![-1.0, -1.0],
+                act_high: vec![1.0, 1.0],
+                ..learner.spec.clone()
+            };
+            let owned: Vec<Trajectory> = trajs
+                .iter()
+                .map(|t| {
+                    let mut t = (*t).clone();
+                    t.actions = (0..t.len() * 2)
+                        .map(|i| (i as f32 * 0.7).sin() * 0.9)
+                        .collect();
+                    t.action_idx.clear();
+                    t
+                })
+                .collect();
+            let refs: Vec<&Trajectory> = owned.iter().collect();
+            let batch = make_batch(&refs, &cfg, &spec, &mut rng, Device::Cpu);
+            let vs = nn::VarStore::new(Device::Cpu);
+            let net = EppoNet::new(vs.root(), &cfg, &spec).unwrap();
+            let tvs = nn::VarStore::new(Device::Cpu);
+            let target = EppoNet::new(tvs.root(), &cfg, &spec).unwrap();
+            (batch, net, target, vs)
+        };
+        // The BC term alone: Lp(bc = 1) - Lp(bc = 0) under the same noise.
+        let bc_term = || {
+            let mut with = cfg.clone();
+            with.bc_coef = 1.0;
+            tch::manual_seed(0);
+            let (_, _, a, ..) = losses(&net, &target, &batch, 0.0, &with).unwrap();
+            tch::manual_seed(0);
+            let (_, _, b, ..) = losses(&net, &target, &batch, 0.0, &cfg).unwrap();
+            a - b
+        };
+        let first = bc_term().double_value(&[]);
+        let mut opt = Adam::new(
+            &vs,
+            AdamConfig {
+                lr: 1e-2,
+                beta1: 0.9,
+                beta2: 0.99,
+                eps: 1e-8,
+                grad_clip: None,
+            },
+        );
+        for _ in 0..30 {
+            opt.backward_step(&bc_term());
+        }
+        let last = bc_term().double_value(&[]);
+        assert!(
+            last < first - 1e-3,
+            "discrete {discrete}: BC term {first} -> {last} (-mean keep * log pi must fall)"
+        );
+    }
+}
+
+#[test]
+fn n_step_targets_sum_rewards_until_the_bootstrap_stops() {
+    let t = |v: &[f32]| Tensor::from_slice(v).view([1, v.len() as i64]);
+    // Steps 0..5: reward at step 2 (terminal: no bootstrap past it), then
+    // a step 3 without a target of its own (truncated), then 4 and 5.
+    let r = t(&[0.0, 0.0, 1.0, 0.0, 0.0, 2.0]);
+    let boot = t(&[1.0, 1.0, 0.0, 1.0, 1.0, 0.0]);
+    let valid = t(&[1.0, 1.0, 1.0, 0.0, 1.0, 1.0]);
+    let v_next = t(&[10.0, 20.0, 30.0, 40.0, 50.0, 60.0]);
+    let g = 0.5;
+    let y1 = to_vec(&n_step_targets(&r, &boot, &valid, &v_next, g, 1));
+    assert_eq!(y1, vec![5.0, 10.0, 1.0, 20.0, 25.0, 2.0]);
+    let y3 = to_vec(&n_step_targets(&r, &boot, &valid, &v_next, g, 3));
+    // 0: 0 + g (0 + g (1)) = 0.25; 1: 0 + g 1 = 0.5; 2: 1;
+    // 3: r3 + g [valid 4] y(2)_4 = 0 + g (0 + g 2) = 0.5;
+    // 4: 0 + g 2 = 1; 5: 2.
+    assert_eq!(y3, vec![0.25, 0.5, 1.0, 0.5, 1.0, 2.0]);
+    // Step 2 bootstraps into step 3, which has no target: one-step there.
+    let boot2 = t(&[1.0, 1.0, 1.0, 0.0, 1.0, 0.0]);
+    let y2 = to_vec(&n_step_targets(&r, &boot2, &valid, &v_next, g, 2));
+    // 1: 0 + g y(1)_2 = g (1 + g 30) = 8; 2: 1 + g V'_3 (step 3 has no target) = 1 + 15.
+    assert_eq!(y2[1], 8.0);
+    assert_eq!(y2[2], 16.0);
+}
+
+#[test]
+fn pretrain_end_to_end_checkpoints_resumes_and_loads() {
+    let out = std::env::temp_dir().join(format!("icrl-eppo-e2e-{}", std::process::id()));
+    let opts = PretrainOptions {
+        env: EnvName::DarkRoom,
+        cfg: tiny(),
+        out: out.clone(),
+        resume: None,
+        progress: false,
+    };
+    let report = train(&opts).unwrap();
+    assert_eq!(report.updates, 4);
+    assert!(report.last_checkpoint.ends_with("step_4"));
+    let lines = std::fs::read_to_string(report.run_dir.join("metrics.jsonl")).unwrap();
+    let first: serde_json::Value = serde_json::from_str(lines.lines().next().unwrap()).unwrap();
+    for key in [
+        "env_steps",
+        "episodic_return",
+        "episodic_cost",
+        "lambda",
+        "losses/value_loss",
+    ] {
+        assert!(first.get(key).is_some(), "{key}");
+    }
+    // Resume to 6 updates from the run folder.
+    let mut cfg = tiny();
+    cfg.total_updates = 6;
+    let resumed = train(&PretrainOptions {
+        cfg,
+        resume: Some(report.run_dir.clone()),
+        ..opts.clone()
+    })
+    .unwrap();
+    assert_eq!(
+        (resumed.updates, resumed.run_dir.clone()),
+        (6, report.run_dir.clone())
+    );
+    assert!(resumed.env_steps > report.env_steps);
+    // An incompatible config is refused with the manifest named.
+    let mut other = tiny();
+    other.model.n_layers = 2;
+    let err = train(&PretrainOptions {
+        cfg: other,
+        resume: Some(report.run_dir.clone()),
+        ..opts.clone()
+    })
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(
+        err.contains("manifest.json") && err.contains("model"),
+        "{err}"
+    );
+    // A truncated weight file is refused with its name.
+    let ckpt = report.run_dir.join("checkpoints/step_6");
+    let w = ckpt.join("model.safetensors");
+    let bytes = std::fs::read(&w).unwrap();
+    let mut agent = EppoAgent::load(&ckpt, Device::Cpu).unwrap();
+    std::fs::write(&w, &bytes[..bytes.len() / 2]).unwrap();
+    let err = EppoAgent::load(&ckpt, Device::Cpu)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(err.contains("model.safetensors"), "{err}");
+    // The frozen agent acts for two trajectories at once.
+    agent
+        .reset(&[
+            Conditioning::Budget { ctg: 3.0 },
+            Conditioning::Budget { ctg: 9.0 },
+        ])
+        .unwrap();
+    let input = StepInput {
+        obs: &[4.0, 4.0, 4.0, 4.0],
+        arrived_obs: &[0.0; 4],
+        prev_action: &[0.0; 10],
+        reward: &[0.0; 2],
+        cost: &[0.0; 2],
+        episode_start: &[true; 2],
+    };
+    let Actions::Discrete(a) = agent.act(&input, true).unwrap() else {
+        panic!()
+    };
+    assert!(a.len() == 2 && a.iter().all(|&x| x < 5));
+    assert!(
+        agent
+            .act(
+                &StepInput {
+                    obs: &[0.0; 2],
+                    ..input
+                },
+                false
+            )
+            .is_err()
+    );
+    std::fs::remove_dir_all(&out).unwrap();
+}

@@ -1,0 +1,403 @@
+//! What an evaluation produces: the raw per-episode results with their
+//! tasks, conditions and recording ([`EvalResult`]), the summaries drawn from
+//! them (curves over the episode index, the budget sweep, trends), and the
+//! report the `eval` command writes for one agent and protocol ([`EvalReport`]).
+
+use std::fmt;
+
+use safety_envs::Task;
+use serde::{Deserialize, Serialize};
+
+use crate::agent::Conditioning;
+use crate::stats::{MeanSe, mean_se};
+use crate::task_seeds::PretrainTasks;
+
+/// How the held-out property of the evaluation tasks was established.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub enum HeldOut {
+    /// Every evaluation task was compared with every pretraining task the
+    /// checkpoint records, and none was equal.
+    Checked(PretrainTasks),
+    /// The checkpoint records no pretraining tasks: only the seed ranges
+    /// (evaluation seeds are in the reserved range, edge orientation) hold.
+    SeedRangesOnly,
+}
+
+/// A task, serialisable: grid size, goal and obstacle cells as `[row, col]`.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TaskRecord {
+    pub seed: u64,
+    pub grid_size: usize,
+    pub goal: [usize; 2],
+    pub obstacles: Vec<[usize; 2]>,
+}
+
+impl TaskRecord {
+    pub(super) fn new(seed: u64, t: &Task) -> Self {
+        TaskRecord {
+            seed,
+            grid_size: t.grid_size,
+            goal: [t.goal.row, t.goal.col],
+            obstacles: t.obstacles.iter().map(|c| [c.row, c.col]).collect(),
+        }
+    }
+}
+
+/// A conditioning, serialisable.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ConditionRecord {
+    /// Return-to-go target (supervised route only).
+    pub rtg: Option<f32>,
+    /// The cost budget: CTG at each episode start.
+    pub ctg: f32,
+}
+
+impl From<Conditioning> for ConditionRecord {
+    fn from(c: Conditioning) -> Self {
+        match c {
+            Conditioning::Budget { ctg } => ConditionRecord { rtg: None, ctg },
+            Conditioning::Targets { rtg, ctg } => ConditionRecord {
+                rtg: Some(rtg),
+                ctg,
+            },
+        }
+    }
+}
+
+/// Every step of one episode of a recorded trajectory.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct RecordedEpisode {
+    /// Observations: the first, then one after each step (`len = steps + 1`).
+    pub observations: Vec<Vec<f32>>,
+    /// Actions as the environment received them (index or vector).
+    pub actions: Vec<Vec<f32>>,
+    pub rewards: Vec<f32>,
+    pub costs: Vec<f32>,
+    /// The episode's reset seed (replaying the actions after
+    /// `set_task` + `reset(seed)` reproduces it).
+    pub reset_seed: u64,
+}
+
+/// One trajectory recorded step by step.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Recording {
+    pub condition: usize,
+    pub task: usize,
+    pub episodes: Vec<RecordedEpisode>,
+}
+
+/// What one evaluation measured: per (condition, task, episode) results.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EvalResult {
+    pub tasks: Vec<TaskRecord>,
+    pub conditions: Vec<ConditionRecord>,
+    pub episodes: usize,
+    pub eval_seed: u64,
+    pub greedy: bool,
+    pub batch: usize,
+    pub held_out: HeldOut,
+    /// `edge` (held-out evaluation) or `centre` (in-distribution diagnostic).
+    pub orientation: String,
+    /// Episode returns, `[condition][task][episode]`.
+    pub returns: Vec<Vec<Vec<f32>>>,
+    /// Episode costs, same layout.
+    pub costs: Vec<Vec<Vec<f32>>>,
+    /// Episode lengths in agent steps, same layout.
+    pub lengths: Vec<Vec<Vec<u32>>>,
+    /// The episode ended at the goal (terminated), same layout.
+    pub reached_goal: Vec<Vec<Vec<bool>>>,
+    pub recording: Option<Recording>,
+}
+
+/// Mean and standard error over tasks of one episode index.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct EpisodeStats {
+    /// Episode index k, from 1.
+    pub k: usize,
+    pub ret: MeanSe,
+    pub cost: MeanSe,
+    /// Fraction of conditions whose episode cost exceeded the budget (CTG).
+    pub violation: MeanSe,
+    /// Fraction of conditions that reached the goal.
+    pub success: MeanSe,
+    /// Discovery rate: P(goal at k | not reached in episodes 1..k-1), over the
+    /// conditions of each task with no earlier success (tasks with none are
+    /// left out; `n` says how many remain). Absent from older result files.
+    #[serde(default = "MeanSe::undefined")]
+    pub discovery: MeanSe,
+    /// Revisit rate: P(goal at k | reached earlier), the same way.
+    #[serde(default = "MeanSe::undefined")]
+    pub revisit: MeanSe,
+    /// Fraction of conditions that reached the goal in some episode 1..=k.
+    #[serde(default = "MeanSe::undefined")]
+    pub found_by: MeanSe,
+}
+
+/// Budget-sweep statistics of one condition, over tasks.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ConditionStats {
+    pub condition: ConditionRecord,
+    /// `sum_k G(tau_k)`.
+    pub total_return: MeanSe,
+    /// `max_k Gc(tau_k)`.
+    pub max_cost: MeanSe,
+    /// Mean episode cost over the K episodes.
+    pub mean_cost: MeanSe,
+    /// Fraction of the K episodes over budget.
+    pub violation: MeanSe,
+}
+
+/// First episodes against last episodes: does the agent improve in context?
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Trend {
+    /// Episodes in each window (K / 5, at least 1).
+    pub window: usize,
+    pub first_return: MeanSe,
+    pub last_return: MeanSe,
+    /// Per task: last-window mean return minus first-window mean return.
+    pub return_gain: MeanSe,
+    pub first_cost: MeanSe,
+    pub last_cost: MeanSe,
+    /// Per task: first-window mean cost minus last-window mean cost.
+    pub cost_drop: MeanSe,
+}
+
+/// Everything plotted and tabulated from one [`EvalResult`].
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Summary {
+    pub per_episode: Vec<EpisodeStats>,
+    pub per_condition: Vec<ConditionStats>,
+    pub trend: Trend,
+    /// Mean CTG over the conditions (the budget line of Figure 1).
+    pub mean_budget: f32,
+    /// Per task, the least-squares slope of the total return against the CTG
+    /// over the conditions; mean and s.e. over tasks (`None` with fewer than
+    /// two distinct CTGs). Positive: more budget buys more return.
+    pub total_return_slope: Option<MeanSe>,
+    /// The same for the maximum episode cost.
+    pub max_cost_slope: Option<MeanSe>,
+}
+
+/// Least-squares slope of `ys` against `xs`; `None` when the x values do not vary.
+fn slope(xs: &[f64], ys: &[f64]) -> Option<f64> {
+    let n = xs.len() as f64;
+    let (mx, my) = (xs.iter().sum::<f64>() / n, ys.iter().sum::<f64>() / n);
+    let sxx: f64 = xs.iter().map(|x| (x - mx).powi(2)).sum();
+    let sxy: f64 = xs.iter().zip(ys).map(|(x, y)| (x - mx) * (y - my)).sum();
+    (sxx > 0.0).then(|| sxy / sxx)
+}
+
+/// Mean and s.e., undefined (NaN) for an empty sample.
+fn ms(xs: &[f64]) -> MeanSe {
+    mean_se(xs).unwrap_or_else(MeanSe::undefined)
+}
+
+impl EvalResult {
+    fn n_tasks(&self) -> usize {
+        self.tasks.len()
+    }
+
+    /// Per task, the mean over conditions of `f(condition, task, episode)`.
+    fn per_task_over_conditions(
+        &self,
+        k: usize,
+        f: impl Fn(usize, usize, usize) -> f64,
+    ) -> Vec<f64> {
+        let nc = self.conditions.len() as f64;
+        (0..self.n_tasks())
+            .map(|t| (0..self.conditions.len()).map(|c| f(c, t, k)).sum::<f64>() / nc)
+            .collect()
+    }
+
+    /// Per task, the fraction of conditions reaching the goal at episode k
+    /// among those that had (`found_before`) or had not reached it earlier;
+    /// tasks without such a condition are skipped.
+    fn conditional_success(&self, k: usize, found_before: bool) -> Vec<f64> {
+        (0..self.n_tasks())
+            .filter_map(|t| {
+                let (hits, n) = (0..self.conditions.len())
+                    .filter(|&c| self.reached_goal[c][t][..k].contains(&true) == found_before)
+                    .fold((0usize, 0usize), |(h, n), c| {
+                        (h + usize::from(self.reached_goal[c][t][k]), n + 1)
+                    });
+                (n > 0).then(|| hits as f64 / n as f64)
+            })
+            .collect()
+    }
+
+    /// Curves, sweep and trend (see the module documentation for the averaging).
+    pub fn summary(&self) -> Summary {
+        let k_n = self.episodes;
+        let per_episode = (0..k_n)
+            .map(|k| EpisodeStats {
+                k: k + 1,
+                ret: ms(&self.per_task_over_conditions(k, |c, t, k| self.returns[c][t][k] as f64)),
+                cost: ms(&self.per_task_over_conditions(k, |c, t, k| self.costs[c][t][k] as f64)),
+                violation: ms(&self.per_task_over_conditions(k, |c, t, k| {
+                    f64::from(u8::from(self.costs[c][t][k] > self.conditions[c].ctg))
+                })),
+                success: ms(&self.per_task_over_conditions(k, |c, t, k| {
+                    f64::from(u8::from(self.reached_goal[c][t][k]))
+                })),
+                discovery: ms(&self.conditional_success(k, false)),
+                revisit: ms(&self.conditional_success(k, true)),
+                found_by: ms(&self.per_task_over_conditions(k, |c, t, k| {
+                    f64::from(u8::from(self.reached_goal[c][t][..=k].contains(&true)))
+                })),
+            })
+            .collect();
+        let per_condition = self
+            .conditions
+            .iter()
+            .enumerate()
+            .map(|(c, cond)| {
+                let tasks = 0..self.n_tasks();
+                let total: Vec<f64> = tasks
+                    .clone()
+                    .map(|t| self.returns[c][t].iter().map(|&g| g as f64).sum())
+                    .collect();
+                let max: Vec<f64> = tasks
+                    .clone()
+                    .map(|t| {
+                        self.costs[c][t]
+                            .iter()
+                            .fold(f64::NEG_INFINITY, |m, &g| m.max(g as f64))
+                    })
+                    .collect();
+                let mean: Vec<f64> = tasks
+                    .clone()
+                    .map(|t| self.costs[c][t].iter().map(|&g| g as f64).sum::<f64>() / k_n as f64)
+                    .collect();
+                let viol: Vec<f64> = tasks
+                    .map(|t| {
+                        self.costs[c][t].iter().filter(|&&g| g > cond.ctg).count() as f64
+                            / k_n as f64
+                    })
+                    .collect();
+                ConditionStats {
+                    condition: *cond,
+                    total_return: ms(&total),
+                    max_cost: ms(&max),
+                    mean_cost: ms(&mean),
+                    violation: ms(&viol),
+                }
+            })
+            .collect();
+        let window = (k_n / 5).max(1);
+        let window_mean = |data: &Vec<Vec<Vec<f32>>>, t: usize, first: bool| -> f64 {
+            let ks = if first { 0..window } else { k_n - window..k_n };
+            let n = (ks.len() * self.conditions.len()) as f64;
+            (0..self.conditions.len())
+                .flat_map(|c| ks.clone().map(move |k| data[c][t][k] as f64))
+                .sum::<f64>()
+                / n
+        };
+        let per_task = |data: &Vec<Vec<Vec<f32>>>, first: bool| -> Vec<f64> {
+            (0..self.n_tasks())
+                .map(|t| window_mean(data, t, first))
+                .collect()
+        };
+        let (fr, lr) = (
+            per_task(&self.returns, true),
+            per_task(&self.returns, false),
+        );
+        let (fc, lc) = (per_task(&self.costs, true), per_task(&self.costs, false));
+        let diff =
+            |a: &[f64], b: &[f64]| -> Vec<f64> { a.iter().zip(b).map(|(x, y)| x - y).collect() };
+        let trend = Trend {
+            window,
+            first_return: ms(&fr),
+            last_return: ms(&lr),
+            return_gain: ms(&diff(&lr, &fr)),
+            first_cost: ms(&fc),
+            last_cost: ms(&lc),
+            cost_drop: ms(&diff(&fc, &lc)),
+        };
+        let mean_budget =
+            self.conditions.iter().map(|c| c.ctg).sum::<f32>() / self.conditions.len() as f32;
+        let ctgs: Vec<f64> = self.conditions.iter().map(|c| c.ctg as f64).collect();
+        let slopes = |per_task: &dyn Fn(usize, usize) -> f64| -> Option<MeanSe> {
+            let s: Option<Vec<f64>> = (0..self.n_tasks())
+                .map(|t| {
+                    let ys: Vec<f64> = (0..self.conditions.len()).map(|c| per_task(c, t)).collect();
+                    slope(&ctgs, &ys)
+                })
+                .collect();
+            s.and_then(|s| mean_se(&s))
+        };
+        let total_return_slope =
+            slopes(&|c, t| self.returns[c][t].iter().map(|&g| g as f64).sum::<f64>());
+        let max_cost_slope = slopes(&|c, t| {
+            self.costs[c][t]
+                .iter()
+                .fold(f64::NEG_INFINITY, |m, &g| m.max(g as f64))
+        });
+        Summary {
+            per_episode,
+            per_condition,
+            trend,
+            mean_budget,
+            total_return_slope,
+            max_cost_slope,
+        }
+    }
+}
+
+/// Which pretraining produced an agent.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize)]
+pub enum Method {
+    /// Safe reinforcement pretraining (EPPO): conditioned on a budget.
+    Eppo,
+    /// Safe supervised pretraining (algorithm distillation with RTG/CTG).
+    Ad,
+    /// A uniformly random policy.
+    Random,
+}
+
+impl Method {
+    /// File-name stem.
+    pub fn stem(self) -> &'static str {
+        match self {
+            Method::Eppo => "eppo",
+            Method::Ad => "ad",
+            Method::Random => "random",
+        }
+    }
+}
+
+impl fmt::Display for Method {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        f.write_str(match self {
+            Method::Eppo => "EPPO",
+            Method::Ad => "AD",
+            Method::Random => "random policy",
+        })
+    }
+}
+
+/// One evaluation's report: exact settings, raw results and their summary.
+#[derive(Debug, Serialize)]
+pub struct EvalReport {
+    pub env: String,
+    pub method: Method,
+    /// The `--label` given to this checkpoint, if any.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub label: Option<String>,
+    pub checkpoint: Option<String>,
+    pub checkpoint_note: String,
+    /// "figure1" or "sweep".
+    pub protocol: String,
+    pub command: String,
+    pub tasks: usize,
+    pub episodes: usize,
+    pub max_episode_steps: usize,
+    /// Point and Car: MuJoCo physics steps per agent action (absent for SafeDarkRoom).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub physics_steps_per_action: Option<usize>,
+    pub threads: usize,
+    /// Parameter checksums before and after the evaluation (equal: frozen).
+    pub parameters_checksum: Option<[u64; 2]>,
+    pub wall_seconds: f64,
+    pub summary: Summary,
+    pub result: EvalResult,
+}
