@@ -12,7 +12,8 @@ use crate::ad::{
 use crate::checkpoint::{CheckpointError, RunDir};
 use crate::eppo::{self, EppoConfig, EppoError, PretrainOptions, PretrainReport};
 
-/// Resolves the configuration and runs [`train`]: a new run from the preset
+/// Resolves the configuration, runs [`eppo::train`] and draws the run's
+/// learning curve ([`crate::plots::training::plot_learning_curve`]): a new run from the preset
 /// `eppo-{env}-{preset}`, or with `resume` the run's own `config.toml`; the
 /// `sets` overrides (`key=value`) apply on top in both cases.
 pub fn eppo(
@@ -55,7 +56,11 @@ pub fn eppo(
         resume: resume.map(Path::to_path_buf),
         progress: true,
     };
-    eppo::train(&opts)
+    let report = eppo::train(&opts)?;
+    if let Err(e) = crate::plots::training::plot_learning_curve(&report.run_dir, 10) {
+        eprintln!("warning: {e}");
+    }
+    Ok(report)
 }
 
 /// The `pretrain --method ad` command: a preset (or a resumed run's config)

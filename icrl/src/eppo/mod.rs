@@ -388,11 +388,6 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
         last_ckpt = learner.save_checkpoint(&run)?;
     }
     bar.finish();
-    if opts.progress
-        && let Err(e) = crate::plots::training::plot_learning_curve(&run.path, 10)
-    {
-        eprintln!("warning: {e}");
-    }
     Ok(PretrainReport {
         run_dir: run.path.clone(),
         last_checkpoint: last_ckpt,
