@@ -77,6 +77,46 @@ pub(super) fn losses(
 ) -> Result<(Tensor, Tensor, Tensor, Tensor, LossDiagnostics), EppoError> {
     let h = net.encode(&batch.tokens, true)?; // (B, L, D)
     let c = cfg.n_critics;
+    let (y, yc) = td_targets(net, target, batch, cfg)?; // (B, L) each
+    let td_mask = batch.td_valid.unsqueeze(-1); // (B, L, 1)
+    let actor = match net.spec.n_actions {
+        Some(_) => discrete_actor(net, &h, batch, lambda, cfg),
+        None => continuous_actor(net, &h, batch, lambda, cfg),
+    };
+    let diagnostics = LossDiagnostics {
+        q_mean: masked_mean(
+            &actor.q_taken.detach().mean_dim(-1, false, Kind::Float),
+            &batch.td_valid,
+        ),
+        target_mean: masked_mean(&y, &batch.td_valid),
+        log_std_mean: actor.log_std_mean,
+    };
+    let (q_taken, qc_taken) = (actor.q_taken, actor.qc_taken);
+    let value_loss = masked_mean(
+        &(q_taken - y.unsqueeze(-1)).square(),
+        &td_mask.expand([-1, -1, c], false),
+    );
+    let cost_value_loss = masked_mean(
+        &(qc_taken - yc.unsqueeze(-1)).square(),
+        &td_mask.expand([-1, -1, c], false),
+    );
+    Ok((
+        value_loss,
+        cost_value_loss,
+        actor.policy_loss,
+        actor.entropy,
+        diagnostics,
+    ))
+}
+
+/// The reward and cost TD targets y and yc, (B, L) each, from the target
+/// networks at t + 1 (no gradient).
+fn td_targets(
+    net: &EppoNet,
+    target: &EppoNet,
+    batch: &Batch,
+    cfg: &EppoConfig,
+) -> Result<(Tensor, Tensor), EppoError> {
     // Targets from the target networks at t + 1, no gradient.
     let (v_next, vc_next) = tch::no_grad(|| -> Result<(Tensor, Tensor), EppoError> {
         let ht = target.encode(&batch.tokens, false)?; // (B, L, D)
@@ -124,110 +164,115 @@ pub(super) fn losses(
         cfg.gamma,
         cfg.n_step,
     ); // (B, L)
-    let td_mask = batch.td_valid.unsqueeze(-1); // (B, L, 1)
-    let mut log_std_mean = None;
-    let (q_taken, qc_taken, policy_loss, entropy) = match net.spec.n_actions {
-        Some(_) => {
-            let q_all = net.critic_values(&net.critic, &h, false); // (B, L, C, A)
-            let qc_all = net.critic_values(&net.cost_critic, &h, false); // (B, L, C, A)
-            let idx = batch
-                .actions
-                .view([batch.actions.size()[0], -1, 1, 1])
-                .expand([-1, -1, c, 1], false); // (B, L) -> (B, L, C, 1)
-            let q_taken = q_all.gather(3, &idx, false).squeeze_dim(3); // (B, L, C)
-            let qc_taken = qc_all.gather(3, &idx, false).squeeze_dim(3); // (B, L, C)
-            // Actor: expectation of -Q + lambda v_e Qc under its own distribution;
-            // critic values are constants here (detached).
-            let logits = net.actor.forward(&h); // (B, L, A)
-            let logp = logits.log_softmax(-1, Kind::Float);
-            let pi = logp.exp();
-            let q = q_all.detach().amin(2, false); // (B, L, A)
-            let qc = qc_all.detach().mean_dim(2, false, Kind::Float); // (B, L, A)
-            let penalty = lambda * cfg.reward_scale;
-            let per_action = q.neg() + qc * batch.violated.unsqueeze(-1) * penalty; // (B, L, A)
-            let entropy = (&pi * &logp).sum_dim_intlist(-1, false, Kind::Float).neg(); // (B, L)
-            let mut objective = (&pi * per_action).sum_dim_intlist(-1, false, Kind::Float)
-                - &entropy * cfg.entropy_coef;
-            if cfg.bc_coef > 0.0 {
-                // Filtered BC: A = Q(a_t) - sum_a pi(a) Q(a), mean over critics.
-                let q_mean = q_all.detach().mean_dim(2, false, Kind::Float); // (B, L, A)
-                let idx = batch.actions.unsqueeze(-1); // (B, L, 1)
-                let q_data = q_mean.gather(2, &idx, false).squeeze_dim(2); // (B, L)
-                let v = (&pi.detach() * &q_mean).sum_dim_intlist(-1, false, Kind::Float); // (B, L)
-                let keep = (q_data - v).gt(0.0).to_kind(Kind::Float); // (B, L)
-                let logp_data = logp.gather(2, &idx, false).squeeze_dim(2); // (B, L)
-                objective -= keep * logp_data * cfg.bc_coef;
-            }
-            (
-                q_taken,
-                qc_taken,
-                masked_mean(&objective, &batch.valid),
-                masked_mean(&entropy, &batch.valid),
-            )
-        }
-        None => {
-            let q_taken = net.critic_sa(&net.critic, &h, &batch.actions, false); // (B, L, C)
-            let qc_taken = net.critic_sa(&net.cost_critic, &h, &batch.actions, false); // (B, L, C)
-            let (mean, log_std) = net.gaussian(&h);
-            log_std_mean = Some(masked_mean(
-                &log_std.detach().mean_dim(-1, false, Kind::Float),
-                &batch.valid,
-            ));
-            let (a_hat, log_prob) = tanh_gaussian_sample(&mean, &log_std, &mean.randn_like());
-            // The critics judge a_hat with frozen parameters and a detached
-            // trajectory encoding: the actor loss moves only the actor (and the
-            // encoder through the actor's input).
-            let hd = h.detach();
-            let q_hat = net.critic_sa(&net.critic, &hd, &a_hat, true); // (B, L, C)
-            let q = q_hat.amin(-1, false); // (B, L)
-            let qc =
-                net.critic_sa(&net.cost_critic, &hd, &a_hat, true)
-                    .mean_dim(-1, false, Kind::Float); // (B, L)
-            let penalty = lambda * cfg.reward_scale;
-            let mut objective =
-                q.neg() + qc * &batch.violated * penalty + &log_prob * cfg.entropy_coef;
-            if cfg.bc_coef > 0.0 {
-                // Filtered BC: A = Q(a_t) - Q(a_hat) (one sample of E_pi),
-                // mean over critics, no gradient anywhere in the filter.
-                let keep = tch::no_grad(|| {
-                    let q_data = q_taken.mean_dim(-1, false, Kind::Float); // (B, L)
-                    let v = q_hat.detach().mean_dim(-1, false, Kind::Float); // (B, L)
-                    (q_data - v).gt(0.0).to_kind(Kind::Float)
-                });
-                let logp_data = tanh_gaussian_log_prob(&mean, &log_std, &batch.actions); // (B, L)
-                objective -= keep * logp_data * cfg.bc_coef;
-            }
-            (
-                q_taken,
-                qc_taken,
-                masked_mean(&objective, &batch.valid),
-                masked_mean(&log_prob.neg(), &batch.valid),
-            )
-        }
-    };
-    let diagnostics = LossDiagnostics {
-        q_mean: masked_mean(
-            &q_taken.detach().mean_dim(-1, false, Kind::Float),
-            &batch.td_valid,
-        ),
-        target_mean: masked_mean(&y, &batch.td_valid),
+    Ok((y, yc))
+}
+
+/// The actor's terms and the critics on the replayed actions.
+struct ActorTerms {
+    /// (B, L, C) the reward and cost critics at (h_t, a_t).
+    q_taken: Tensor,
+    qc_taken: Tensor,
+    /// Lp (filtered BC included) and the policy entropy, masked means.
+    policy_loss: Tensor,
+    entropy: Tensor,
+    /// Continuous actions: the actor's mean log-std.
+    log_std_mean: Option<Tensor>,
+}
+
+/// Discrete actions: Lp as the expectation of -Q + lambda v_e Qc under the
+/// actor's own distribution, minus the entropy bonus, plus filtered BC.
+fn discrete_actor(
+    net: &EppoNet,
+    h: &Tensor,
+    batch: &Batch,
+    lambda: f64,
+    cfg: &EppoConfig,
+) -> ActorTerms {
+    let q_all = net.critic_values(&net.critic, h, false); // (B, L, C, A)
+    let qc_all = net.critic_values(&net.cost_critic, h, false); // (B, L, C, A)
+    let idx = batch
+        .actions
+        .view([batch.actions.size()[0], -1, 1, 1])
+        .expand([-1, -1, cfg.n_critics, 1], false); // (B, L) -> (B, L, C, 1)
+    let q_taken = q_all.gather(3, &idx, false).squeeze_dim(3); // (B, L, C)
+    let qc_taken = qc_all.gather(3, &idx, false).squeeze_dim(3); // (B, L, C)
+    // Actor: expectation of -Q + lambda v_e Qc under its own distribution;
+    // critic values are constants here (detached).
+    let logits = net.actor.forward(h); // (B, L, A)
+    let logp = logits.log_softmax(-1, Kind::Float);
+    let pi = logp.exp();
+    let q = q_all.detach().amin(2, false); // (B, L, A)
+    let qc = qc_all.detach().mean_dim(2, false, Kind::Float); // (B, L, A)
+    let penalty = lambda * cfg.reward_scale;
+    let per_action = q.neg() + qc * batch.violated.unsqueeze(-1) * penalty; // (B, L, A)
+    let entropy = (&pi * &logp).sum_dim_intlist(-1, false, Kind::Float).neg(); // (B, L)
+    let mut objective =
+        (&pi * per_action).sum_dim_intlist(-1, false, Kind::Float) - &entropy * cfg.entropy_coef;
+    if cfg.bc_coef > 0.0 {
+        // Filtered BC: A = Q(a_t) - sum_a pi(a) Q(a), mean over critics.
+        let q_mean = q_all.detach().mean_dim(2, false, Kind::Float); // (B, L, A)
+        let idx = batch.actions.unsqueeze(-1); // (B, L, 1)
+        let q_data = q_mean.gather(2, &idx, false).squeeze_dim(2); // (B, L)
+        let v = (&pi.detach() * &q_mean).sum_dim_intlist(-1, false, Kind::Float); // (B, L)
+        let keep = (q_data - v).gt(0.0).to_kind(Kind::Float); // (B, L)
+        let logp_data = logp.gather(2, &idx, false).squeeze_dim(2); // (B, L)
+        objective -= keep * logp_data * cfg.bc_coef;
+    }
+    ActorTerms {
+        q_taken,
+        qc_taken,
+        policy_loss: masked_mean(&objective, &batch.valid),
+        entropy: masked_mean(&entropy, &batch.valid),
+        log_std_mean: None,
+    }
+}
+
+/// Continuous actions: Lp on a reparameterised tanh-Gaussian sample a_hat,
+/// judged by frozen critics, plus filtered BC.
+fn continuous_actor(
+    net: &EppoNet,
+    h: &Tensor,
+    batch: &Batch,
+    lambda: f64,
+    cfg: &EppoConfig,
+) -> ActorTerms {
+    let q_taken = net.critic_sa(&net.critic, h, &batch.actions, false); // (B, L, C)
+    let qc_taken = net.critic_sa(&net.cost_critic, h, &batch.actions, false); // (B, L, C)
+    let (mean, log_std) = net.gaussian(h);
+    let log_std_mean = Some(masked_mean(
+        &log_std.detach().mean_dim(-1, false, Kind::Float),
+        &batch.valid,
+    ));
+    let (a_hat, log_prob) = tanh_gaussian_sample(&mean, &log_std, &mean.randn_like());
+    // The critics judge a_hat with frozen parameters and a detached
+    // trajectory encoding: the actor loss moves only the actor (and the
+    // encoder through the actor's input).
+    let hd = h.detach();
+    let q_hat = net.critic_sa(&net.critic, &hd, &a_hat, true); // (B, L, C)
+    let q = q_hat.amin(-1, false); // (B, L)
+    let qc = net
+        .critic_sa(&net.cost_critic, &hd, &a_hat, true)
+        .mean_dim(-1, false, Kind::Float); // (B, L)
+    let penalty = lambda * cfg.reward_scale;
+    let mut objective = q.neg() + qc * &batch.violated * penalty + &log_prob * cfg.entropy_coef;
+    if cfg.bc_coef > 0.0 {
+        // Filtered BC: A = Q(a_t) - Q(a_hat) (one sample of E_pi),
+        // mean over critics, no gradient anywhere in the filter.
+        let keep = tch::no_grad(|| {
+            let q_data = q_taken.mean_dim(-1, false, Kind::Float); // (B, L)
+            let v = q_hat.detach().mean_dim(-1, false, Kind::Float); // (B, L)
+            (q_data - v).gt(0.0).to_kind(Kind::Float)
+        });
+        let logp_data = tanh_gaussian_log_prob(&mean, &log_std, &batch.actions); // (B, L)
+        objective -= keep * logp_data * cfg.bc_coef;
+    }
+    ActorTerms {
+        q_taken,
+        qc_taken,
+        policy_loss: masked_mean(&objective, &batch.valid),
+        entropy: masked_mean(&log_prob.neg(), &batch.valid),
         log_std_mean,
-    };
-    let value_loss = masked_mean(
-        &(q_taken - y.unsqueeze(-1)).square(),
-        &td_mask.expand([-1, -1, c], false),
-    );
-    let cost_value_loss = masked_mean(
-        &(qc_taken - yc.unsqueeze(-1)).square(),
-        &td_mask.expand([-1, -1, c], false),
-    );
-    Ok((
-        value_loss,
-        cost_value_loss,
-        policy_loss,
-        entropy,
-        diagnostics,
-    ))
+    }
 }
 
 /// Eq. (7): lambda <- clip(lambda + eta * mean_j max_k (C_jk - delta_j), 0, lambda_max).
