@@ -180,19 +180,7 @@ pub(super) fn make_batch(
     device: Device,
 ) -> Batch {
     let seq = cfg.model.max_len as usize;
-    // Each trajectory contributes a window of at most `seq` steps.
-    let windows: Vec<(usize, usize)> = trajs
-        .iter()
-        .map(|t| {
-            let len = t.len().min(seq);
-            let start = if t.len() > seq {
-                rng.gen_range(0..=t.len() - seq)
-            } else {
-                0
-            };
-            (start, len)
-        })
-        .collect();
+    let windows = sample_windows(trajs, seq, rng);
     let b = trajs.len();
     let l = windows.iter().map(|w| w.1).max().unwrap_or(1);
     let (dtok, a) = (spec.token_dim(), spec.act_flat());
@@ -265,37 +253,10 @@ pub(super) fn make_batch(
                 0.0
             };
             valid[k] = 1.0;
-            let last_of_trajectory = step + 1 == t.len();
-            let next_in_window = i + 1 < len;
-            let (has_target, bootstraps) = if cfg.bootstrap_across_episodes {
-                // Meta-RL view: an episode's end (terminated at the goal or
-                // truncated at the time limit) leads to the next episode's
-                // first state, which is the next token: bootstrap through it.
-                // Only the trajectory's end stops the sum of K returns.
-                if last_of_trajectory {
-                    (true, false)
-                } else {
-                    (next_in_window, next_in_window)
-                }
-            } else if t.terminated[step] {
-                // Terminated (goal): a true terminal state, target = r alone.
-                (true, false)
-            } else if t.truncated[step] {
-                // Truncated (time limit): the value goes on past the final
-                // state, but that state is not a token (the next token starts
-                // another episode), so the step has no target and is skipped.
-                (false, false)
-            } else {
-                (next_in_window, next_in_window)
-            };
+            let (has_target, bootstraps, cost_bootstraps) = td_masks(cfg, t, step, i + 1 < len);
             td_valid[k] = if has_target { 1.0 } else { 0.0 };
             boot[k] = if bootstraps { 1.0 } else { 0.0 };
-            let episode_ends = t.terminated[step] || t.truncated[step];
-            cost_boot[k] = if bootstraps && !episode_ends {
-                1.0
-            } else {
-                0.0
-            };
+            cost_boot[k] = if cost_bootstraps { 1.0 } else { 0.0 };
         }
     }
     let (bi, li) = (b as i64, l as i64);
@@ -320,4 +281,58 @@ pub(super) fn make_batch(
         cost_bootstrap: f(&cost_boot),
         max_violation: trajs.iter().map(|t| t.max_violation()).collect(),
     }
+}
+
+/// Each trajectory's window (start, length): at most `seq` steps, starting
+/// anywhere in a longer trajectory.
+fn sample_windows(trajs: &[&Trajectory], seq: usize, rng: &mut ChaCha8Rng) -> Vec<(usize, usize)> {
+    trajs
+        .iter()
+        .map(|t| {
+            let len = t.len().min(seq);
+            let start = if t.len() > seq {
+                rng.gen_range(0..=t.len() - seq)
+            } else {
+                0
+            };
+            (start, len)
+        })
+        .collect()
+}
+
+/// For step `step` of `t`: (the step has a TD target, its reward target
+/// bootstraps from position t + 1, its cost target does). `next_in_window`:
+/// position t + 1 is inside the batch's window.
+fn td_masks(
+    cfg: &EppoConfig,
+    t: &Trajectory,
+    step: usize,
+    next_in_window: bool,
+) -> (bool, bool, bool) {
+    let last_of_trajectory = step + 1 == t.len();
+    let (has_target, bootstraps) = if cfg.bootstrap_across_episodes {
+        // Meta-RL view: an episode's end (terminated at the goal or
+        // truncated at the time limit) leads to the next episode's
+        // first state, which is the next token: bootstrap through it.
+        // Only the trajectory's end stops the sum of K returns.
+        if last_of_trajectory {
+            (true, false)
+        } else {
+            (next_in_window, next_in_window)
+        }
+    } else if t.terminated[step] {
+        // Terminated (goal): a true terminal state, target = r alone.
+        (true, false)
+    } else if t.truncated[step] {
+        // Truncated (time limit): the value goes on past the final
+        // state, but that state is not a token (the next token starts
+        // another episode), so the step has no target and is skipped.
+        (false, false)
+    } else {
+        (next_in_window, next_in_window)
+    };
+    // The cost target never bootstraps past an episode's end: the budget
+    // binds each episode on its own (Eq. 6, 7).
+    let episode_ends = t.terminated[step] || t.truncated[step];
+    (has_target, bootstraps, bootstraps && !episode_ends)
 }
