@@ -77,31 +77,65 @@ pub(super) fn mean(xs: impl Iterator<Item = f64>) -> f64 {
     if n == 0 { 0.0 } else { s / n as f64 }
 }
 
+/// Each trajectory's budget, K and exploration scale, drawn for one round.
+type RoundDraws = (Vec<f32>, Vec<usize>, Vec<f64>);
+
+/// What a round of `steps` environment steps gathered in `trajs`.
+fn round_stats(trajs: &[Trajectory], steps: u64, discrete: bool) -> RoundStats {
+    let (discovery_rate, revisit_rate, found) =
+        search_rates(trajs.iter().map(|t| t.episode_success.as_slice()));
+    let (action_abs, action_saturated) = if discrete {
+        (f64::NAN, f64::NAN)
+    } else {
+        let all = || {
+            trajs
+                .iter()
+                .flat_map(|t| t.actions.iter().map(|&x| f64::from(x.abs())))
+        };
+        (
+            mean(all()),
+            mean(all().map(|x| if x > 0.99 { 1.0 } else { 0.0 })),
+        )
+    };
+    RoundStats {
+        action_abs,
+        action_saturated,
+        discovery_rate,
+        revisit_rate,
+        found,
+        trajectories: trajs.len(),
+        steps,
+        mean_return: mean(
+            trajs
+                .iter()
+                .flat_map(|t| t.episode_returns.iter().map(|&x| f64::from(x))),
+        ),
+        mean_cost: mean(
+            trajs
+                .iter()
+                .flat_map(|t| t.episode_costs.iter().map(|&x| f64::from(x))),
+        ),
+        first_return: mean(trajs.iter().map(|t| f64::from(t.episode_returns[0]))),
+        last_return: mean(
+            trajs
+                .iter()
+                .map(|t| f64::from(*t.episode_returns.last().unwrap_or(&0.0))),
+        ),
+        first_cost: mean(trajs.iter().map(|t| f64::from(t.episode_costs[0]))),
+        last_cost: mean(
+            trajs
+                .iter()
+                .map(|t| f64::from(*t.episode_costs.last().unwrap_or(&0.0))),
+        ),
+    }
+}
+
 impl Learner {
     /// Collects `cfg.n_envs` trajectories at once: each in a fresh centre-oriented
     /// task with its own budget and K, acted in one batch through the KV cache.
     pub fn collect(&mut self, venv: &mut VecEnv) -> Result<RoundStats, EppoError> {
         let n = venv.len();
-        let spawn = spawn_config(self.env);
-        let (mut budgets, mut ks, mut seeds) = (vec![0f32; n], vec![0usize; n], vec![0u64; n]);
-        let mut eps_scale = vec![1f64; n];
-        for i in 0..n {
-            let index = match self.cfg.task_pool {
-                0 => self.tasks_drawn,
-                pool => self.tasks_drawn % pool,
-            };
-            let seed = pretrain_task_seed(self.cfg.seed, index);
-            self.tasks_drawn += 1;
-            let task = sample_task(&spawn, Orientation::Centre, seed)?;
-            venv.set_task(i, &task)?;
-            budgets[i] = self.rng.gen_range(self.cfg.ctg_min..=self.cfg.ctg_max);
-            ks[i] = self.rng.gen_range(self.cfg.k_min..=self.cfg.k_max);
-            seeds[i] = self.rng.r#gen();
-            if self.cfg.eps_random_scale {
-                eps_scale[i] = self.rng.r#gen();
-            }
-        }
-        venv.reset(&seeds)?;
+        let (budgets, ks, eps_scale) = self.draw_tasks(venv)?;
         let exploration = self.cfg.exploration(self.env_steps);
         let horizons: Vec<usize> = ks.iter().map(|k| k * self.cfg.max_episode_steps).collect();
         let mut acting = Acting::new(&self.net, &self.spec, &self.cfg, &budgets);
@@ -194,56 +228,39 @@ impl Learner {
             }
         }
         self.env_steps += steps;
-        let (discovery_rate, revisit_rate, found) =
-            search_rates(trajs.iter().map(|t| t.episode_success.as_slice()));
-        let (action_abs, action_saturated) = if self.spec.n_actions.is_some() {
-            (f64::NAN, f64::NAN)
-        } else {
-            let all = || {
-                trajs
-                    .iter()
-                    .flat_map(|t| t.actions.iter().map(|&x| f64::from(x.abs())))
-            };
-            (
-                mean(all()),
-                mean(all().map(|x| if x > 0.99 { 1.0 } else { 0.0 })),
-            )
-        };
-        let stats = RoundStats {
-            action_abs,
-            action_saturated,
-            discovery_rate,
-            revisit_rate,
-            found,
-            trajectories: n,
-            steps,
-            mean_return: mean(
-                trajs
-                    .iter()
-                    .flat_map(|t| t.episode_returns.iter().map(|&x| f64::from(x))),
-            ),
-            mean_cost: mean(
-                trajs
-                    .iter()
-                    .flat_map(|t| t.episode_costs.iter().map(|&x| f64::from(x))),
-            ),
-            first_return: mean(trajs.iter().map(|t| f64::from(t.episode_returns[0]))),
-            last_return: mean(
-                trajs
-                    .iter()
-                    .map(|t| f64::from(*t.episode_returns.last().unwrap_or(&0.0))),
-            ),
-            first_cost: mean(trajs.iter().map(|t| f64::from(t.episode_costs[0]))),
-            last_cost: mean(
-                trajs
-                    .iter()
-                    .map(|t| f64::from(*t.episode_costs.last().unwrap_or(&0.0))),
-            ),
-        };
+        let stats = round_stats(&trajs, steps, self.spec.n_actions.is_some());
         for t in trajs {
             self.replay.push(t);
         }
         Ok(stats)
+    }
+
+    /// Draws one round's tasks (fresh centre-oriented, or from the pool),
+    /// sets them in the environments and resets them; returns each
+    /// trajectory's budget, K and exploration scale.
+    fn draw_tasks(&mut self, venv: &mut VecEnv) -> Result<RoundDraws, EppoError> {
+        let n = venv.len();
+        let spawn = spawn_config(self.env);
+        let (mut budgets, mut ks, mut seeds) = (vec![0f32; n], vec![0usize; n], vec![0u64; n]);
+        let mut eps_scale = vec![1f64; n];
+        for i in 0..n {
+            let index = match self.cfg.task_pool {
+                0 => self.tasks_drawn,
+                pool => self.tasks_drawn % pool,
+            };
+            let seed = pretrain_task_seed(self.cfg.seed, index);
+            self.tasks_drawn += 1;
+            let task = sample_task(&spawn, Orientation::Centre, seed)?;
+            venv.set_task(i, &task)?;
+            budgets[i] = self.rng.gen_range(self.cfg.ctg_min..=self.cfg.ctg_max);
+            ks[i] = self.rng.gen_range(self.cfg.k_min..=self.cfg.k_max);
+            seeds[i] = self.rng.r#gen();
+            if self.cfg.eps_random_scale {
+                eps_scale[i] = self.rng.r#gen();
+            }
+        }
+        venv.reset(&seeds)?;
+        Ok((budgets, ks, eps_scale))
     }
 }
 
