@@ -266,19 +266,7 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
         .map(|_| make_env(opts.env, &env_options))
         .collect::<Result<Vec<_>, _>>()?;
     let mut venv = VecEnv::new(envs, cfg.env_threads, true)?;
-    let bar = if opts.progress {
-        let bar = indicatif::ProgressBar::new(cfg.total_updates);
-        bar.set_style(
-            indicatif::ProgressStyle::with_template(
-                "{bar:30} {pos}/{len} updates [{elapsed_precise}<{eta_precise}] {msg}",
-            )
-            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
-        );
-        bar.set_position(learner.updates);
-        bar
-    } else {
-        indicatif::ProgressBar::hidden()
-    };
+    let bar = progress_bar(opts.progress, cfg.total_updates, learner.updates);
     // Without a terminal indicatif draws nothing: print the bar's line to
     // stderr instead, at most every 30 s, so logs show progress.
     let log_lines = opts.progress && bar.is_hidden();
@@ -319,40 +307,7 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
         let secs = started.elapsed().as_secs_f64().max(1e-9);
         let ups = (learner.updates - start_updates) as f64 / secs;
         let sps = (learner.env_steps - start_steps) as f64 / secs;
-        let avg = |f: fn(&UpdateStats) -> f64| {
-            if stats.is_empty() {
-                f64::NAN
-            } else {
-                mean(stats.iter().map(f))
-            }
-        };
-        let record = serde_json::json!({
-            "env_steps": learner.env_steps,
-            "updates": learner.updates,
-            "episodic_return": round.mean_return,
-            "episodic_cost": round.mean_cost,
-            "first_episode_return": round.first_return,
-            "last_episode_return": round.last_return,
-            "first_episode_cost": round.first_cost,
-            "last_episode_cost": round.last_cost,
-            "discovery_rate": round.discovery_rate,
-            "revisit_rate": round.revisit_rate,
-            "found_goal": round.found,
-            "lambda": learner.lambda,
-            "losses/value_loss": avg(|s| s.value_loss),
-            "losses/cost_value_loss": avg(|s| s.cost_value_loss),
-            "losses/policy_loss": avg(|s| s.policy_loss),
-            "losses/entropy": avg(|s| s.entropy),
-            "losses/grad_norm": avg(|s| s.grad_norm),
-            "losses/q_mean": avg(|s| s.q_mean),
-            "losses/target_mean": avg(|s| s.target_mean),
-            "losses/log_std_mean": avg(|s| s.log_std_mean),
-            "charts/action_abs": round.action_abs,
-            "charts/action_saturated": round.action_saturated,
-            "charts/epsilon": learner.epsilon(),
-            "charts/updates_per_s": ups,
-            "charts/env_steps_per_s": sps,
-        });
+        let record = round_record(&learner, &round, &stats, ups, sps);
         metrics.write(&record)?;
         recent.push(
             round.mean_return,
@@ -395,5 +350,67 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
         env_steps: learner.env_steps,
         lambda: learner.lambda,
         random,
+    })
+}
+
+/// The progress bar over `total_updates` (hidden without `progress`).
+fn progress_bar(progress: bool, total_updates: u64, updates: u64) -> indicatif::ProgressBar {
+    if progress {
+        let bar = indicatif::ProgressBar::new(total_updates);
+        bar.set_style(
+            indicatif::ProgressStyle::with_template(
+                "{bar:30} {pos}/{len} updates [{elapsed_precise}<{eta_precise}] {msg}",
+            )
+            .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
+        );
+        bar.set_position(updates);
+        bar
+    } else {
+        indicatif::ProgressBar::hidden()
+    }
+}
+
+/// One collection round's line of `metrics.jsonl` (names in the module docs):
+/// the round's episodes, the learner's counters and the means of its updates.
+fn round_record(
+    learner: &Learner,
+    round: &RoundStats,
+    stats: &[UpdateStats],
+    ups: f64,
+    sps: f64,
+) -> serde_json::Value {
+    let avg = |f: fn(&UpdateStats) -> f64| {
+        if stats.is_empty() {
+            f64::NAN
+        } else {
+            mean(stats.iter().map(f))
+        }
+    };
+    serde_json::json!({
+        "env_steps": learner.env_steps,
+        "updates": learner.updates,
+        "episodic_return": round.mean_return,
+        "episodic_cost": round.mean_cost,
+        "first_episode_return": round.first_return,
+        "last_episode_return": round.last_return,
+        "first_episode_cost": round.first_cost,
+        "last_episode_cost": round.last_cost,
+        "discovery_rate": round.discovery_rate,
+        "revisit_rate": round.revisit_rate,
+        "found_goal": round.found,
+        "lambda": learner.lambda,
+        "losses/value_loss": avg(|s| s.value_loss),
+        "losses/cost_value_loss": avg(|s| s.cost_value_loss),
+        "losses/policy_loss": avg(|s| s.policy_loss),
+        "losses/entropy": avg(|s| s.entropy),
+        "losses/grad_norm": avg(|s| s.grad_norm),
+        "losses/q_mean": avg(|s| s.q_mean),
+        "losses/target_mean": avg(|s| s.target_mean),
+        "losses/log_std_mean": avg(|s| s.log_std_mean),
+        "charts/action_abs": round.action_abs,
+        "charts/action_saturated": round.action_saturated,
+        "charts/epsilon": learner.epsilon(),
+        "charts/updates_per_s": ups,
+        "charts/env_steps_per_s": sps,
     })
 }
