@@ -39,7 +39,9 @@ use std::collections::HashSet;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use safety_envs::vec_env::{VecAction, VecEnv, episode_seed};
-use safety_envs::{CmdpEnv, EnvError, Orientation, Space, SpawnConfig, Task, sample_task};
+use safety_envs::{
+    CmdpEnv, EnvError, Orientation, Space, SpawnConfig, StepOutcome, Task, sample_task,
+};
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
@@ -352,39 +354,8 @@ fn run_batch(
     let (nt, k_n) = (cfg.tasks, cfg.episodes);
     let b = rows.len();
     let act_dim = act_space.flat_dim();
-    let mut seeds = Vec::with_capacity(b);
-    let mut conditioning = Vec::with_capacity(b);
-    for (i, &j) in rows.iter().enumerate() {
-        let (c, t) = (j / nt, j % nt);
-        venv.set_task(i, &tasks[t].1)?;
-        // Reset seeds depend on the task and the condition only, so a
-        // trajectory's episodes do not depend on the batch it falls in.
-        seeds.push(task_seeds::splitmix64(
-            tasks[t].0 ^ task_seeds::splitmix64(c as u64),
-        ));
-        conditioning.push(cfg.conditions[c]);
-    }
-    agent.reset(&conditioning)?;
-    venv.reset(&seeds)?;
-
-    let recorded_row = cfg
-        .record
-        .map(|(c, t)| c * nt + t)
-        .and_then(|j| rows[..live].iter().position(|&r| r == j));
-    let mut recording = recorded_row.map(|i| {
-        let (c, t) = (rows[i] / nt, rows[i] % nt);
-        let first = RecordedEpisode {
-            observations: vec![venv.observations()[i * obs_dim..(i + 1) * obs_dim].to_vec()],
-            // VecEnv resets episode 0 with the base seed itself.
-            reset_seed: seeds[i],
-            ..Default::default()
-        };
-        Recording {
-            condition: c,
-            task: t,
-            episodes: vec![first],
-        }
-    });
+    let (seeds, recorded_row, mut recording) =
+        start_batch(agent, venv, tasks, cfg, rows, live, obs_dim)?;
 
     let mut state = vec![RowState::default(); b];
     let mut prev_action = vec![0.0f32; b * act_dim];
@@ -419,40 +390,7 @@ fn run_batch(
             episode_start: &start,
         };
         let actions = agent.act(&input, cfg.greedy)?;
-        // Validate and convert the agent's actions for the environments.
-        let outcomes = match (&actions, act_space) {
-            (Actions::Discrete(a), Space::Discrete { n }) if a.len() == b => {
-                if let Some(bad) = a.iter().find(|&&x| x >= *n) {
-                    return Err(EvalError::AgentOutput(format!(
-                        "discrete action {bad} outside 0..{n}"
-                    )));
-                }
-                discrete.clear();
-                discrete.extend_from_slice(a);
-                venv.step(VecAction::Discrete(&discrete))?
-            }
-            (Actions::Continuous(a), Space::Box { low, high }) if a.len() == b * act_dim => {
-                // Clip into the box, as Gymnasium's ClipAction would; NaN stays
-                // NaN and the environment rejects it.
-                continuous.clear();
-                continuous.extend(
-                    a.iter()
-                        .enumerate()
-                        .map(|(i, &x)| x.clamp(low[i % act_dim], high[i % act_dim])),
-                );
-                venv.step(VecAction::Continuous(&continuous))?
-            }
-            (got, space) => {
-                return Err(EvalError::AgentOutput(format!(
-                    "{} for {b} trajectories in action space {space:?}",
-                    match got {
-                        Actions::Discrete(a) => format!("{} discrete actions", a.len()),
-                        Actions::Continuous(a) => format!("{} continuous values", a.len()),
-                    }
-                )));
-            }
-        }
-        .to_vec();
+        let outcomes = step_envs(venv, &actions, act_space, &mut discrete, &mut continuous)?;
 
         let mut finished = 0;
         for i in 0..b {
@@ -481,24 +419,17 @@ fn run_batch(
                 && let Some(r) = recording.as_mut()
                 && state[i].done < k_n
             {
-                let ep = r.episodes.last_mut().expect("one episode is always open");
-                ep.observations
-                    .push(arrived[i * obs_dim..(i + 1) * obs_dim].to_vec());
-                ep.actions.push(match &actions {
-                    Actions::Discrete(a) => vec![a[i] as f32],
-                    Actions::Continuous(_) => continuous[i * act_dim..(i + 1) * act_dim].to_vec(),
-                });
-                ep.rewards.push(o.reward);
-                ep.costs.push(o.cost);
-                if o.done() && state[i].done + 1 < k_n {
-                    r.episodes.push(RecordedEpisode {
-                        observations: vec![
-                            venv.observations()[i * obs_dim..(i + 1) * obs_dim].to_vec(),
-                        ],
-                        reset_seed: episode_seed(seeds[i], (state[i].done + 1) as u64),
-                        ..Default::default()
-                    });
-                }
+                let row = (i, obs_dim, act_dim);
+                record_step(
+                    r,
+                    venv,
+                    &actions,
+                    &continuous,
+                    &arrived,
+                    o,
+                    row,
+                    (state[i].done, k_n, seeds[i]),
+                );
             }
             let s = &mut state[i];
             if s.done >= k_n || i >= live {
@@ -529,6 +460,136 @@ fn run_batch(
         result.recording = Some(r);
     }
     Ok(())
+}
+
+/// A batch's reset seeds, and the row recorded with its recording so far.
+type BatchStart = (Vec<u64>, Option<usize>, Option<Recording>);
+
+/// Sets each row's task, resets the agent with the rows' conditions and the
+/// environments with their seeds; returns the seeds, and the row recorded
+/// (if `cfg.record` falls in this batch) with its recording's first state.
+fn start_batch(
+    agent: &mut dyn InContextAgent,
+    venv: &mut VecEnv,
+    tasks: &[(u64, Task)],
+    cfg: &EvalConfig,
+    rows: &[usize],
+    live: usize,
+    obs_dim: usize,
+) -> Result<BatchStart, EvalError> {
+    let nt = cfg.tasks;
+    let b = rows.len();
+    let mut seeds = Vec::with_capacity(b);
+    let mut conditioning = Vec::with_capacity(b);
+    for (i, &j) in rows.iter().enumerate() {
+        let (c, t) = (j / nt, j % nt);
+        venv.set_task(i, &tasks[t].1)?;
+        // Reset seeds depend on the task and the condition only, so a
+        // trajectory's episodes do not depend on the batch it falls in.
+        seeds.push(task_seeds::splitmix64(
+            tasks[t].0 ^ task_seeds::splitmix64(c as u64),
+        ));
+        conditioning.push(cfg.conditions[c]);
+    }
+    agent.reset(&conditioning)?;
+    venv.reset(&seeds)?;
+
+    let recorded_row = cfg
+        .record
+        .map(|(c, t)| c * nt + t)
+        .and_then(|j| rows[..live].iter().position(|&r| r == j));
+    let recording = recorded_row.map(|i| {
+        let (c, t) = (rows[i] / nt, rows[i] % nt);
+        let first = RecordedEpisode {
+            observations: vec![venv.observations()[i * obs_dim..(i + 1) * obs_dim].to_vec()],
+            // VecEnv resets episode 0 with the base seed itself.
+            reset_seed: seeds[i],
+            ..Default::default()
+        };
+        Recording {
+            condition: c,
+            task: t,
+            episodes: vec![first],
+        }
+    });
+    Ok((seeds, recorded_row, recording))
+}
+
+/// Validates the agent's actions, converts them for the environments and
+/// steps every environment once.
+fn step_envs(
+    venv: &mut VecEnv,
+    actions: &Actions,
+    act_space: &Space,
+    discrete: &mut Vec<usize>,
+    continuous: &mut Vec<f32>,
+) -> Result<Vec<StepOutcome>, EvalError> {
+    let b = venv.len();
+    let act_dim = act_space.flat_dim();
+    Ok(match (actions, act_space) {
+        (Actions::Discrete(a), Space::Discrete { n }) if a.len() == b => {
+            if let Some(bad) = a.iter().find(|&&x| x >= *n) {
+                return Err(EvalError::AgentOutput(format!(
+                    "discrete action {bad} outside 0..{n}"
+                )));
+            }
+            discrete.clear();
+            discrete.extend_from_slice(a);
+            venv.step(VecAction::Discrete(discrete))?
+        }
+        (Actions::Continuous(a), Space::Box { low, high }) if a.len() == b * act_dim => {
+            // Clip into the box, as Gymnasium's ClipAction would; NaN stays
+            // NaN and the environment rejects it.
+            continuous.clear();
+            continuous.extend(
+                a.iter()
+                    .enumerate()
+                    .map(|(i, &x)| x.clamp(low[i % act_dim], high[i % act_dim])),
+            );
+            venv.step(VecAction::Continuous(continuous))?
+        }
+        (got, space) => {
+            return Err(EvalError::AgentOutput(format!(
+                "{} for {b} trajectories in action space {space:?}",
+                match got {
+                    Actions::Discrete(a) => format!("{} discrete actions", a.len()),
+                    Actions::Continuous(a) => format!("{} continuous values", a.len()),
+                }
+            )));
+        }
+    }
+    .to_vec())
+}
+
+/// Appends row `i`'s step to the recording: where the action led, the
+/// action, reward and cost; an episode's end opens the next episode.
+#[allow(clippy::too_many_arguments)]
+fn record_step(
+    r: &mut Recording,
+    venv: &VecEnv,
+    actions: &Actions,
+    continuous: &[f32],
+    arrived: &[f32],
+    o: StepOutcome,
+    (i, obs_dim, act_dim): (usize, usize, usize),
+    (done, k_n, seed): (usize, usize, u64),
+) {
+    let ep = r.episodes.last_mut().expect("one episode is always open");
+    ep.observations
+        .push(arrived[i * obs_dim..(i + 1) * obs_dim].to_vec());
+    ep.actions.push(match actions {
+        Actions::Discrete(a) => vec![a[i] as f32],
+        Actions::Continuous(_) => continuous[i * act_dim..(i + 1) * act_dim].to_vec(),
+    });
+    ep.rewards.push(o.reward);
+    ep.costs.push(o.cost);
+    if o.done() && done + 1 < k_n {
+        r.episodes.push(RecordedEpisode {
+            observations: vec![venv.observations()[i * obs_dim..(i + 1) * obs_dim].to_vec()],
+            reset_seed: episode_seed(seed, (done + 1) as u64),
+            ..Default::default()
+        });
+    }
 }
 
 /// A uniformly random policy, for scale: ignores its context.
