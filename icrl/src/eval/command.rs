@@ -24,7 +24,7 @@ use safety_envs::{CmdpEnv, EnvError, EnvName, EnvOptions, Orientation, make_env,
 use serde::Serialize;
 
 use super::error::EvalCmdError;
-use super::load::LoadedAgent;
+use super::load::{ContextLimit, LoadedAgent};
 use super::render::render;
 use super::report::{EvalReport, Method};
 use crate::agent::{AgentError, Conditioning};
@@ -302,37 +302,7 @@ fn run_one(
     };
     let make = move || -> Result<Box<dyn CmdpEnv>, EnvError> { make_env(env, &env_options) };
     let t_max = make()?.max_episode_steps();
-    if let Some(c) = loaded.context
-        && t_max > c.max_len
-    {
-        return Err(EvalCmdError::Options(format!(
-            "one episode of {t_max} steps does not fit the checkpoint's context of {} steps: \
-             pass --max-episode-steps {} or less (the checkpoint was trained with {})",
-            c.max_len, c.max_len, c.max_episode_steps
-        )));
-    }
-    // Episodes: asked for, else the paper's K capped by what the context holds.
-    let episodes = match (opts.episodes, loaded.context) {
-        (Some(k), Some(c)) if k * t_max > c.max_len => {
-            return Err(EvalCmdError::Options(format!(
-                "{} episodes of {t_max} steps need a context of {} steps; the checkpoint's model holds {} \
-                 ({} episodes): pass --episodes {} or less",
-                k,
-                k * t_max,
-                c.max_len,
-                c.episodes(t_max),
-                c.episodes(t_max)
-            )));
-        }
-        (Some(k), _) => k,
-        (None, Some(c)) => d.episodes.min(c.episodes(t_max)),
-        (None, None) => d.episodes,
-    };
-    if episodes == 0 {
-        return Err(EvalCmdError::Options(format!(
-            "no whole episode of {t_max} steps fits the model's context"
-        )));
-    }
+    let episodes = episodes_for(loaded.context, opts.episodes, d.episodes, t_max)?;
     let cfg = EvalConfig {
         tasks: opts.tasks,
         episodes,
@@ -358,19 +328,12 @@ fn run_one(
         (false, true) => "figure1-centre",
         (true, true) => "sweep-centre",
     };
-    let bar = if opts.progress {
-        let bar = ProgressBar::new((cfg.trajectories() * episodes) as u64);
-        bar.set_style(
-            ProgressStyle::with_template(
-                "{prefix:>24} [{elapsed_precise}] {wide_bar} {pos}/{len} episodes (eta {eta})",
-            )
-            .unwrap_or_else(|_| ProgressStyle::default_bar()),
-        );
-        bar.set_prefix(format!("{} {protocol}", loaded.method));
-        bar
-    } else {
-        ProgressBar::hidden()
-    };
+    let total_episodes = (cfg.trajectories() * episodes) as u64;
+    let bar = progress_bar(
+        opts.progress,
+        total_episodes,
+        &format!("{} {protocol}", loaded.method),
+    );
     let checksum = |l: &LoadedAgent| -> Result<Option<u64>, AgentError> {
         if l.parameters.is_empty() {
             Ok(None)
@@ -430,6 +393,66 @@ fn run_one(
     written.push(json);
     written.extend(write_csvs(&report, &stem)?);
     Ok(report)
+}
+
+/// Episodes per trajectory: `asked`, else the environment's `default`
+/// capped by what the model's `context` holds; refused, with the option to
+/// pass, when an episode of `t_max` steps or the asked episodes do not fit.
+fn episodes_for(
+    context: Option<ContextLimit>,
+    asked: Option<usize>,
+    default: usize,
+    t_max: usize,
+) -> Result<usize, EvalCmdError> {
+    if let Some(c) = context
+        && t_max > c.max_len
+    {
+        return Err(EvalCmdError::Options(format!(
+            "one episode of {t_max} steps does not fit the checkpoint's context of {} steps: \
+             pass --max-episode-steps {} or less (the checkpoint was trained with {})",
+            c.max_len, c.max_len, c.max_episode_steps
+        )));
+    }
+    // Episodes: asked for, else the paper's K capped by what the context holds.
+    let episodes = match (asked, context) {
+        (Some(k), Some(c)) if k * t_max > c.max_len => {
+            return Err(EvalCmdError::Options(format!(
+                "{} episodes of {t_max} steps need a context of {} steps; the checkpoint's model holds {} \
+                 ({} episodes): pass --episodes {} or less",
+                k,
+                k * t_max,
+                c.max_len,
+                c.episodes(t_max),
+                c.episodes(t_max)
+            )));
+        }
+        (Some(k), _) => k,
+        (None, Some(c)) => default.min(c.episodes(t_max)),
+        (None, None) => default,
+    };
+    if episodes == 0 {
+        return Err(EvalCmdError::Options(format!(
+            "no whole episode of {t_max} steps fits the model's context"
+        )));
+    }
+    Ok(episodes)
+}
+
+/// The episodes' progress bar, named `prefix` (hidden without `progress`).
+fn progress_bar(progress: bool, total: u64, prefix: &str) -> ProgressBar {
+    if progress {
+        let bar = ProgressBar::new(total);
+        bar.set_style(
+            ProgressStyle::with_template(
+                "{prefix:>24} [{elapsed_precise}] {wide_bar} {pos}/{len} episodes (eta {eta})",
+            )
+            .unwrap_or_else(|_| ProgressStyle::default_bar()),
+        );
+        bar.set_prefix(prefix.to_string());
+        bar
+    } else {
+        ProgressBar::hidden()
+    }
 }
 
 fn checkpoint_name(loaded: &LoadedAgent) -> String {
