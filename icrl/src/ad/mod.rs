@@ -206,30 +206,7 @@ pub fn train(
         path: dir.to_path_buf(),
     };
 
-    // Hold out the histories of the last `val_fraction` of the tasks.
-    let hists = &req.data.histories;
-    let mut tasks: Vec<&safety_envs::Task> = Vec::new();
-    for h in hists {
-        if !tasks.contains(&&h.task) {
-            tasks.push(&h.task);
-        }
-    }
-    let n_val_tasks = ((tasks.len() as f64) * cfg.val_fraction).floor() as usize;
-    let val_tasks = &tasks[tasks.len() - n_val_tasks..];
-    // The dataset-size ablation trains on the first `train_fraction` of the
-    // other tasks (every cost limit of each), against the same held-out ones.
-    let n_train_tasks = tasks.len() - n_val_tasks;
-    let kept = ((n_train_tasks as f64 * cfg.train_fraction).ceil() as usize)
-        .clamp(1, n_train_tasks.max(1));
-    let train_tasks = &tasks[..kept];
-    let train_h: Vec<&History> = hists
-        .iter()
-        .filter(|h| train_tasks.contains(&&h.task))
-        .collect();
-    let val_h: Vec<&History> = hists
-        .iter()
-        .filter(|h| val_tasks.contains(&&h.task))
-        .collect();
+    let (train_h, val_h) = split_histories(&req.data.histories, cfg);
     let train_set = TokenSet::new(&spec, cfg, &train_h);
     let val_set = TokenSet::new(&spec, cfg, &val_h);
 
@@ -259,45 +236,7 @@ pub fn train(
     let config_toml = toml::to_string_pretty(cfg).map_err(|e| io_err(dir, e))?;
     let mut last_ckpt: Option<PathBuf> = None;
     if let Some(ckpt) = req.resume {
-        let old_text = fs::read_to_string(&config_path).map_err(|e| io_err(&config_path, e))?;
-        let old = AdConfig::from_toml(&old_text).map_err(|e| io_err(&config_path, e))?;
-        let differ: Vec<String> = config_diff(&old, cfg)
-            .into_iter()
-            .filter(|d| !d.starts_with("updates:") && !d.starts_with("keep_checkpoints:"))
-            .collect();
-        if !differ.is_empty() {
-            return Err(AdError::Config(format!(
-                "cannot resume {}: these settings differ from its config.toml: {}; only updates \
-                 (to extend the run) and keep_checkpoints may change",
-                dir.display(),
-                differ.join(", ")
-            )));
-        }
-        // The data must be what the run was trained on: same sizes and the
-        // same observation normalisation (the agent reads spec.json).
-        let spec_path = dir.join("spec.json");
-        let text = fs::read_to_string(&spec_path).map_err(|e| io_err(&spec_path, e))?;
-        let saved: AdSpec = serde_json::from_str(&text).map_err(|e| io_err(&spec_path, e))?;
-        fn key(s: &AdSpec) -> (usize, usize, bool, &[f32], &[f32], &str) {
-            (
-                s.obs_dim,
-                s.action_dim,
-                s.discrete,
-                &s.obs_mean,
-                &s.obs_std,
-                &s.dataset_config,
-            )
-        }
-        if key(&saved) != key(&spec) {
-            return Err(AdError::Config(format!(
-                "cannot resume {}: the dataset {} is not the one the run was trained on ({}, \
-                 recorded in {}); resume with that dataset or start a new run",
-                dir.display(),
-                req.dataset_path.display(),
-                saved.dataset,
-                spec_path.display()
-            )));
-        }
+        check_resumable(req, &spec, &config_path)?;
         state = load_checkpoint_into(ckpt, cfg, &spec, &mut vs, &mut opt)?;
         if state.update > cfg.updates {
             return Err(AdError::Config(format!(
@@ -369,22 +308,7 @@ pub fn train(
         let stop = crate::stop::requested();
         let done = state.update == cfg.updates;
         if state.update.is_multiple_of(cfg.log_every) || done || stop {
-            let (val_loss, val_acc) = if val_batches.is_empty() {
-                (None, None)
-            } else {
-                let (mut vl, mut va) = (0.0, 0.0);
-                tch::no_grad(|| -> Result<(), AdError> {
-                    for (vx, vy) in &val_batches {
-                        let out = model.forward_t(&vx.to_device(device), false)?;
-                        let (l, a) = loss(&out, &vy.to_device(device), spec.discrete);
-                        vl += l.double_value(&[]);
-                        va += a.map_or(0.0, |a| a.double_value(&[]));
-                    }
-                    Ok(())
-                })?;
-                let k = val_batches.len() as f64;
-                (Some(vl / k), spec.discrete.then_some(va / k))
-            };
+            let (val_loss, val_acc) = validation(&model, &val_batches, device, spec.discrete)?;
             let m = AdMetrics {
                 update: state.update,
                 samples: state.samples,
@@ -422,5 +346,115 @@ pub fn train(
         first,
         last,
         resumed_from,
+    })
+}
+
+/// The histories to train on and those held out for the validation loss:
+/// the held-out ones are every history of the last `val_fraction` of the
+/// tasks; training uses the first `train_fraction` of the others.
+fn split_histories<'a>(
+    hists: &'a [History],
+    cfg: &AdConfig,
+) -> (Vec<&'a History>, Vec<&'a History>) {
+    // Hold out the histories of the last `val_fraction` of the tasks.
+    let mut tasks: Vec<&safety_envs::Task> = Vec::new();
+    for h in hists {
+        if !tasks.contains(&&h.task) {
+            tasks.push(&h.task);
+        }
+    }
+    let n_val_tasks = ((tasks.len() as f64) * cfg.val_fraction).floor() as usize;
+    let val_tasks = &tasks[tasks.len() - n_val_tasks..];
+    // The dataset-size ablation trains on the first `train_fraction` of the
+    // other tasks (every cost limit of each), against the same held-out ones.
+    let n_train_tasks = tasks.len() - n_val_tasks;
+    let kept = ((n_train_tasks as f64 * cfg.train_fraction).ceil() as usize)
+        .clamp(1, n_train_tasks.max(1));
+    let train_tasks = &tasks[..kept];
+    let train_h: Vec<&History> = hists
+        .iter()
+        .filter(|h| train_tasks.contains(&&h.task))
+        .collect();
+    let val_h: Vec<&History> = hists
+        .iter()
+        .filter(|h| val_tasks.contains(&&h.task))
+        .collect();
+    (train_h, val_h)
+}
+
+/// Refuses to resume a run whose `config.toml` differs from `req.cfg` in
+/// anything but `updates` and `keep_checkpoints`, or whose `spec.json` says
+/// it was trained on other data than `spec`'s.
+fn check_resumable(
+    req: &TrainRequest<'_>,
+    spec: &AdSpec,
+    config_path: &Path,
+) -> Result<(), AdError> {
+    let (cfg, dir) = (req.cfg, req.run_dir);
+    let old_text = fs::read_to_string(config_path).map_err(|e| io_err(config_path, e))?;
+    let old = AdConfig::from_toml(&old_text).map_err(|e| io_err(config_path, e))?;
+    let differ: Vec<String> = config_diff(&old, cfg)
+        .into_iter()
+        .filter(|d| !d.starts_with("updates:") && !d.starts_with("keep_checkpoints:"))
+        .collect();
+    if !differ.is_empty() {
+        return Err(AdError::Config(format!(
+            "cannot resume {}: these settings differ from its config.toml: {}; only updates \
+             (to extend the run) and keep_checkpoints may change",
+            dir.display(),
+            differ.join(", ")
+        )));
+    }
+    // The data must be what the run was trained on: same sizes and the
+    // same observation normalisation (the agent reads spec.json).
+    let spec_path = dir.join("spec.json");
+    let text = fs::read_to_string(&spec_path).map_err(|e| io_err(&spec_path, e))?;
+    let saved: AdSpec = serde_json::from_str(&text).map_err(|e| io_err(&spec_path, e))?;
+    fn key(s: &AdSpec) -> (usize, usize, bool, &[f32], &[f32], &str) {
+        (
+            s.obs_dim,
+            s.action_dim,
+            s.discrete,
+            &s.obs_mean,
+            &s.obs_std,
+            &s.dataset_config,
+        )
+    }
+    if key(&saved) != key(spec) {
+        return Err(AdError::Config(format!(
+            "cannot resume {}: the dataset {} is not the one the run was trained on ({}, \
+             recorded in {}); resume with that dataset or start a new run",
+            dir.display(),
+            req.dataset_path.display(),
+            saved.dataset,
+            spec_path.display()
+        )));
+    }
+    Ok(())
+}
+
+/// Mean loss and (discrete) accuracy over the fixed validation windows;
+/// `None` without held-out tasks.
+fn validation(
+    model: &AdModel,
+    val_batches: &[(Tensor, Tensor)],
+    device: Device,
+    discrete: bool,
+) -> Result<(Option<f64>, Option<f64>), AdError> {
+    Ok(if val_batches.is_empty() {
+        (None, None)
+    } else {
+        let (mut vl, mut va) = (0.0, 0.0);
+        tch::no_grad(|| -> Result<(), AdError> {
+            for (vx, vy) in val_batches {
+                let out = model.forward_t(&vx.to_device(device), false)?;
+                let (l, a) = loss(&out, &vy.to_device(device), discrete);
+                vl += l.double_value(&[]);
+                va += a.map_or(0.0, |a| a.double_value(&[]));
+            }
+            Ok(())
+        })?;
+        let k = val_batches.len() as f64;
+        (Some(vl / k), discrete.then_some(va / k))
     })
 }
