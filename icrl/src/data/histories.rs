@@ -711,71 +711,7 @@ pub fn read_histories(
     let f = hdf5::File::open(path).map_err(|e| err(Problem::Unreadable(e.to_string())))?;
     let malformed = |what: String| err(Problem::Malformed(what));
 
-    // Version first: a file of another version may lack everything else.
-    let version = f
-        .attr("format_version")
-        .and_then(|a| a.read_scalar::<u32>())
-        .map_err(|e| malformed(format!("attribute format_version: {e}")))?;
-    if version != FORMAT_VERSION {
-        return Err(err(Problem::WrongVersion {
-            found: version,
-            expected: FORMAT_VERSION,
-        }));
-    }
-    let text_attr = |name: &str| -> Result<String, HistoryError> {
-        f.attr(name)
-            .and_then(|a| a.read_scalar::<VarLenUnicode>())
-            .map(|s| s.as_str().to_string())
-            .map_err(|e| malformed(format!("attribute {name}: {e}")))
-    };
-    let u64_attr = |name: &str| -> Result<u64, HistoryError> {
-        f.attr(name)
-            .and_then(|a| a.read_scalar::<u64>())
-            .map_err(|e| malformed(format!("attribute {name}: {e}")))
-    };
-    let env = text_attr("env")?;
-    if let Some(expected) = expected_env
-        && env != expected
-    {
-        return Err(err(Problem::WrongEnv {
-            found: env,
-            expected: expected.to_string(),
-        }));
-    }
-    let action_n = u64_attr("action_n")? as usize;
-    // Absent in files from before it was recorded: refused for Point and Car.
-    let physics_steps_per_action = match f.attr("physics_steps_per_action") {
-        Ok(a) => a
-            .read_scalar::<u64>()
-            .map_err(|e| malformed(format!("attribute physics_steps_per_action: {e}")))?
-            as usize,
-        Err(_) => 0,
-    };
-    let has_physics = env
-        .parse::<EnvName>()
-        .ok()
-        .and_then(|e| e.physics_steps_per_action(None))
-        .is_some();
-    if has_physics && physics_steps_per_action == 0 {
-        return Err(err(Problem::UnrecordedMacroAction { env }));
-    }
-    let info = DatasetInfo {
-        env,
-        config: text_attr("config")?,
-        seed: u64_attr("seed")?,
-        obs_dim: u64_attr("obs_dim")? as usize,
-        action_dim: u64_attr("action_dim")? as usize,
-        action_n: (action_n > 0).then_some(action_n),
-        grid_size: u64_attr("grid_size")? as usize,
-        physics_steps_per_action: (physics_steps_per_action > 0)
-            .then_some(physics_steps_per_action),
-    };
-    if info.action_n.is_some() && info.action_dim != 1 {
-        return Err(malformed(format!(
-            "a discrete action space (action_n {action_n}) needs action_dim 1, got {}",
-            info.action_dim
-        )));
-    }
+    let info = read_info(&f, path, expected_env)?;
 
     // Each dataset with the shape it must have (None: any length, checked below).
     let read = |name: &str, tail: &[usize]| -> Result<(Vec<f32>, usize), HistoryError> {
@@ -893,6 +829,83 @@ pub fn read_histories(
         )));
     }
     Ok(HistoryFile { info, histories })
+}
+
+/// The file's attributes (format version first: a file of another version
+/// may lack everything else), checked: the environment asked for, the macro
+/// action recorded for Point and Car, one action column for discrete actions.
+fn read_info(
+    f: &hdf5::File,
+    path: &Path,
+    expected_env: Option<&str>,
+) -> Result<DatasetInfo, HistoryError> {
+    let err = |p| HistoryError::new(path, p);
+    let malformed = |what: String| err(Problem::Malformed(what));
+    let version = f
+        .attr("format_version")
+        .and_then(|a| a.read_scalar::<u32>())
+        .map_err(|e| malformed(format!("attribute format_version: {e}")))?;
+    if version != FORMAT_VERSION {
+        return Err(err(Problem::WrongVersion {
+            found: version,
+            expected: FORMAT_VERSION,
+        }));
+    }
+    let text_attr = |name: &str| -> Result<String, HistoryError> {
+        f.attr(name)
+            .and_then(|a| a.read_scalar::<VarLenUnicode>())
+            .map(|s| s.as_str().to_string())
+            .map_err(|e| malformed(format!("attribute {name}: {e}")))
+    };
+    let u64_attr = |name: &str| -> Result<u64, HistoryError> {
+        f.attr(name)
+            .and_then(|a| a.read_scalar::<u64>())
+            .map_err(|e| malformed(format!("attribute {name}: {e}")))
+    };
+    let env = text_attr("env")?;
+    if let Some(expected) = expected_env
+        && env != expected
+    {
+        return Err(err(Problem::WrongEnv {
+            found: env,
+            expected: expected.to_string(),
+        }));
+    }
+    let action_n = u64_attr("action_n")? as usize;
+    // Absent in files from before it was recorded: refused for Point and Car.
+    let physics_steps_per_action = match f.attr("physics_steps_per_action") {
+        Ok(a) => a
+            .read_scalar::<u64>()
+            .map_err(|e| malformed(format!("attribute physics_steps_per_action: {e}")))?
+            as usize,
+        Err(_) => 0,
+    };
+    let has_physics = env
+        .parse::<EnvName>()
+        .ok()
+        .and_then(|e| e.physics_steps_per_action(None))
+        .is_some();
+    if has_physics && physics_steps_per_action == 0 {
+        return Err(err(Problem::UnrecordedMacroAction { env }));
+    }
+    let info = DatasetInfo {
+        env,
+        config: text_attr("config")?,
+        seed: u64_attr("seed")?,
+        obs_dim: u64_attr("obs_dim")? as usize,
+        action_dim: u64_attr("action_dim")? as usize,
+        action_n: (action_n > 0).then_some(action_n),
+        grid_size: u64_attr("grid_size")? as usize,
+        physics_steps_per_action: (physics_steps_per_action > 0)
+            .then_some(physics_steps_per_action),
+    };
+    if info.action_n.is_some() && info.action_dim != 1 {
+        return Err(malformed(format!(
+            "a discrete action space (action_n {action_n}) needs action_dim 1, got {}",
+            info.action_dim
+        )));
+    }
+    Ok(info)
 }
 
 #[cfg(test)]
