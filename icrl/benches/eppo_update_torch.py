@@ -1,5 +1,5 @@
 """One EPPO update (discrete actions, SafeDarkRoom shapes) in PyTorch eager:
-the same model, losses and optimiser step as icrl/src/eppo.rs, for the
+the same model, losses and optimiser step as icrl/src/eppo/ (losses.rs, replay.rs), for the
 benchmark in icrl/benches/model.rs, which runs this script and compares.
 
 Usage: python eppo_update_torch.py --batch 32 --seq 1500 --reps 3 --threads 2

@@ -4,7 +4,7 @@
 //! - `config.toml`: the fully resolved configuration of the run;
 //! - `metrics.jsonl`: one JSON object per line, always with `env_steps` and
 //!   `updates`, plus the learner's fixed metric names (EPPO: `episodic_return`,
-//!   `episodic_cost`, `lambda`, `losses/*`, `charts/*`; see `eppo.rs`);
+//!   `episodic_cost`, `lambda`, `losses/*`, `charts/*`; see `eppo/mod.rs`);
 //! - `checkpoints/step_N/`: one folder per checkpoint, written atomically
 //!   (filled under `checkpoints/.tmp_step_N/`, then renamed), holding the
 //!   learner's files and a `manifest.json` naming the method, environment,
