@@ -211,55 +211,9 @@ pub fn train(
     let val_set = TokenSet::new(&spec, cfg, &val_h);
 
     let mut rng = ChaCha8Rng::seed_from_u64(cfg.seed);
-    let mut vs = nn::VarStore::new(Device::cuda_if_available());
-    tch::manual_seed(cfg.seed as i64);
-    let model = AdModel::new(&vs.root(), &spec, cfg)?;
-    let mut opt = Adam::new(
-        &vs,
-        AdamConfig {
-            lr: cfg.learning_rate,
-            beta1: cfg.beta1,
-            beta2: cfg.beta2,
-            eps: 1e-8,
-            grad_clip: Some(cfg.grad_clip),
-        },
-    );
+    let (mut vs, model, mut opt) = new_model(&spec, cfg)?;
 
-    // Resume or start fresh; the config must match the folder's except for
-    // `updates`, which may grow (the learning-rate schedule then stretches to
-    // the new total).
-    let mut state = TrainState {
-        update: 0,
-        samples: 0,
-    };
-    let config_path = dir.join("config.toml");
-    let config_toml = toml::to_string_pretty(cfg).map_err(|e| io_err(dir, e))?;
-    let mut last_ckpt: Option<PathBuf> = None;
-    if let Some(ckpt) = req.resume {
-        check_resumable(req, &spec, &config_path)?;
-        state = load_checkpoint_into(ckpt, cfg, &spec, &mut vs, &mut opt)?;
-        if state.update > cfg.updates {
-            return Err(AdError::Config(format!(
-                "cannot resume {}: it has done {} updates, more than updates = {}; pass --set updates={} or more",
-                ckpt.display(),
-                state.update,
-                cfg.updates,
-                state.update
-            )));
-        }
-        // Lines logged after the checkpoint are redone: drop them.
-        crate::checkpoint::truncate_metrics(
-            &dir.join("metrics.jsonl"),
-            "update",
-            state.update as u64,
-        )?;
-        last_ckpt = Some(ckpt.to_path_buf());
-    } else {
-        let spec_json = serde_json::to_vec_pretty(&spec).map_err(|e| io_err(dir, e))?;
-        write_atomic(&dir.join("spec.json"), &spec_json)?;
-    }
-    // The resolved config (a grown `updates` included).
-    write_atomic(&config_path, config_toml.as_bytes())?;
+    let (mut state, mut last_ckpt) = resume_or_start(req, &spec, &mut vs, &mut opt)?;
     let resumed_from = state.update;
     // Skip the sampling stream forward so a resumed run does not replay windows.
     rng.set_word_pos((resumed_from as u128) << 16);
@@ -347,6 +301,74 @@ pub fn train(
         last,
         resumed_from,
     })
+}
+
+/// A fresh model and its optimizer, initialised from `cfg.seed`, on the GPU
+/// when libtorch sees one.
+fn new_model(spec: &AdSpec, cfg: &AdConfig) -> Result<(nn::VarStore, AdModel, Adam), AdError> {
+    let vs = nn::VarStore::new(Device::cuda_if_available());
+    tch::manual_seed(cfg.seed as i64);
+    let model = AdModel::new(&vs.root(), spec, cfg)?;
+    let opt = Adam::new(
+        &vs,
+        AdamConfig {
+            lr: cfg.learning_rate,
+            beta1: cfg.beta1,
+            beta2: cfg.beta2,
+            eps: 1e-8,
+            grad_clip: Some(cfg.grad_clip),
+        },
+    );
+    Ok((vs, model, opt))
+}
+
+/// Resumes the run from `req.resume` (checked against the folder's config
+/// and data, its later metrics dropped) or starts it (writing `spec.json`);
+/// writes the resolved `config.toml` either way. Returns the counters and
+/// the checkpoint resumed from.
+fn resume_or_start(
+    req: &TrainRequest<'_>,
+    spec: &AdSpec,
+    vs: &mut nn::VarStore,
+    opt: &mut Adam,
+) -> Result<(TrainState, Option<PathBuf>), AdError> {
+    let (cfg, dir) = (req.cfg, req.run_dir);
+    // Resume or start fresh; the config must match the folder's except for
+    // `updates`, which may grow (the learning-rate schedule then stretches to
+    // the new total).
+    let mut state = TrainState {
+        update: 0,
+        samples: 0,
+    };
+    let config_path = dir.join("config.toml");
+    let config_toml = toml::to_string_pretty(cfg).map_err(|e| io_err(dir, e))?;
+    let mut last_ckpt: Option<PathBuf> = None;
+    if let Some(ckpt) = req.resume {
+        check_resumable(req, spec, &config_path)?;
+        state = load_checkpoint_into(ckpt, cfg, spec, vs, opt)?;
+        if state.update > cfg.updates {
+            return Err(AdError::Config(format!(
+                "cannot resume {}: it has done {} updates, more than updates = {}; pass --set updates={} or more",
+                ckpt.display(),
+                state.update,
+                cfg.updates,
+                state.update
+            )));
+        }
+        // Lines logged after the checkpoint are redone: drop them.
+        crate::checkpoint::truncate_metrics(
+            &dir.join("metrics.jsonl"),
+            "update",
+            state.update as u64,
+        )?;
+        last_ckpt = Some(ckpt.to_path_buf());
+    } else {
+        let spec_json = serde_json::to_vec_pretty(spec).map_err(|e| io_err(dir, e))?;
+        write_atomic(&dir.join("spec.json"), &spec_json)?;
+    }
+    // The resolved config (a grown `updates` included).
+    write_atomic(&config_path, config_toml.as_bytes())?;
+    Ok((state, last_ckpt))
 }
 
 /// The histories to train on and those held out for the validation loss:
