@@ -16,7 +16,7 @@
 //! built once per [`CmdpEnv::set_task`].
 
 use crate::EnvError;
-use crate::env::{Action, CmdpEnv, Space, StepOutcome};
+use crate::env::{Action, CmdpEnv, GoalRule, Space, StepOutcome};
 use crate::spawn::{Cell, Orientation, SpawnConfig, Task, sample_task};
 
 /// Number of discrete actions: stay, up, down, left, right.
@@ -214,6 +214,19 @@ impl CmdpEnv for SafeDarkRoom {
         self.done = outcome.done();
         self.write_obs(obs);
         Ok(outcome)
+    }
+
+    fn goal_rule(&self) -> GoalRule {
+        // (row, col) as floats: the goal is one cell, any other than the start.
+        GoalRule {
+            xy: [0, 1],
+            radius: 0.0,
+            min_start_distance: 1.0,
+        }
+    }
+
+    fn goal_position(&self) -> [f32; 2] {
+        [self.task.goal.row as f32, self.task.goal.col as f32]
     }
 
     fn elapsed_steps(&self) -> usize {

@@ -31,6 +31,38 @@ impl Space {
     }
 }
 
+/// Where a goal counts as reached, read off observations alone: the
+/// observation's `xy` entries within `radius` of the goal. Hindsight
+/// relabelling uses it to make any reached position a goal; a relabelled goal
+/// is at least `min_start_distance` from the episode's start, as every real
+/// goal is (no goal on the start cell).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct GoalRule {
+    /// Indices of the agent's position in the observation.
+    pub xy: [usize; 2],
+    /// Reached when the position is within this distance (0: equal).
+    pub radius: f32,
+    /// The nearest a real goal can be to the start.
+    pub min_start_distance: f32,
+}
+
+impl GoalRule {
+    /// The observation's position.
+    pub fn position(&self, obs: &[f32]) -> [f32; 2] {
+        [obs[self.xy[0]], obs[self.xy[1]]]
+    }
+
+    /// Distance between two positions.
+    pub fn distance(a: [f32; 2], b: [f32; 2]) -> f32 {
+        (a[0] - b[0]).hypot(a[1] - b[1])
+    }
+
+    /// The observation is at the goal `goal`.
+    pub fn reached(&self, obs: &[f32], goal: [f32; 2]) -> bool {
+        Self::distance(self.position(obs), goal) <= self.radius
+    }
+}
+
 /// An action for one environment step.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub enum Action<'a> {
@@ -93,6 +125,19 @@ pub trait CmdpEnv: Send {
     /// environments simulated in MuJoCo; `None` for those without physics
     /// (SafeDarkRoom). Checkpoints and datasets record it.
     fn physics_steps_per_action(&self) -> Option<usize> {
+        None
+    }
+    /// Where the goal counts as reached, in observation terms.
+    fn goal_rule(&self) -> GoalRule;
+    /// The current task's goal in observation terms (at [`GoalRule::xy`]):
+    /// for pretraining-only signals such as a dense critic reward, never
+    /// for the agent's input.
+    fn goal_position(&self) -> [f32; 2];
+    /// A scripted controller's action towards the goal, which it **knows**
+    /// (the agent never does): the debugging ladder's "return to a shown
+    /// goal" rung drives a trajectory's first episode with it. `None` where
+    /// the environment has no such controller.
+    fn goal_seeking_action(&self) -> Option<Vec<f32>> {
         None
     }
 }

@@ -18,7 +18,7 @@ pub mod spawn;
 pub mod vec_env;
 
 pub use darkroom::{DarkRoomConfig, SafeDarkRoom};
-pub use env::{Action, CmdpEnv, Space, StepOutcome};
+pub use env::{Action, CmdpEnv, GoalRule, Space, StepOutcome};
 pub use error::{EnvError, MujocoError};
 pub use make::{EnvName, EnvOptions, make_env, spawn_config};
 pub use nav::{
@@ -31,7 +31,7 @@ pub use vec_env::{VecAction, VecEnv};
 /// The names most users need, in one import.
 pub mod prelude {
     pub use crate::darkroom::{DarkRoomConfig, SafeDarkRoom};
-    pub use crate::env::{Action, CmdpEnv, Space, StepOutcome};
+    pub use crate::env::{Action, CmdpEnv, GoalRule, Space, StepOutcome};
     pub use crate::error::{EnvError, MujocoError};
     pub use crate::make::{EnvName, EnvOptions, make_env, spawn_config};
     pub use crate::nav::{NavConfig, PHYSICS_STEPS_PER_ACTION, Robot, SafeDarkMujoco};

@@ -65,7 +65,7 @@ use std::fmt;
 use std::str::FromStr;
 
 use crate::EnvError;
-use crate::env::{Action, CmdpEnv, Space, StepOutcome};
+use crate::env::{Action, CmdpEnv, GoalRule, Space, StepOutcome};
 use crate::mujoco::{Camera, Data, Model, ObjType, RenderError, Renderer, RgbImage};
 use crate::spawn::{Cell, Orientation, SpawnConfig, Task, sample_task};
 
@@ -674,6 +674,22 @@ impl CmdpEnv for SafeDarkMujoco {
 
     fn physics_steps_per_action(&self) -> Option<usize> {
         Some(self.config.physics_steps_per_action)
+    }
+
+    fn goal_rule(&self) -> GoalRule {
+        GoalRule {
+            xy: [0, 1],
+            radius: self.config.goal_radius as f32,
+            min_start_distance: self.config.spacing() as f32,
+        }
+    }
+
+    fn goal_position(&self) -> [f32; 2] {
+        [self.goal_xy[0] as f32, self.goal_xy[1] as f32]
+    }
+
+    fn goal_seeking_action(&self) -> Option<Vec<f32>> {
+        Some(SafeDarkMujoco::goal_seeking_action(self).to_vec())
     }
 }
 

@@ -444,6 +444,12 @@ mod tests {
         fn elapsed_steps(&self) -> usize {
             self.inner.elapsed_steps()
         }
+        fn goal_rule(&self) -> crate::env::GoalRule {
+            self.inner.goal_rule()
+        }
+        fn goal_position(&self) -> [f32; 2] {
+            self.inner.goal_position()
+        }
     }
 
     #[test]

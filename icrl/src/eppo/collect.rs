@@ -141,8 +141,10 @@ impl Learner {
         let mut acting = Acting::new(&self.net, &self.spec, &self.cfg, &budgets);
         let mut trajs: Vec<Trajectory> = budgets
             .iter()
-            .map(|&budget| Trajectory {
+            .enumerate()
+            .map(|(i, &budget)| Trajectory {
                 budget,
+                goal: venv.env(i).goal_position(),
                 ..Default::default()
             })
             .collect();
@@ -168,8 +170,20 @@ impl Learner {
             let eps: Vec<f64> = (0..n)
                 .map(|i| exploration.at(trajs[i].len(), horizons[i], eps_scale[i]))
                 .collect();
-            let (net_actions, env_actions) =
+            let (mut net_actions, mut env_actions) =
                 sample_actions(&policy, &self.spec, &eps, false, &mut self.rng);
+            if self.cfg.scripted_first_episode {
+                let first_episode: Vec<bool> = (0..n)
+                    .map(|i| active[i] && trajs[i].episode_returns.is_empty())
+                    .collect();
+                script_actions(
+                    venv,
+                    &self.spec,
+                    &first_episode,
+                    &mut net_actions,
+                    &mut env_actions,
+                );
+            }
             for i in (0..n).filter(|&i| active[i]) {
                 let t = &mut trajs[i];
                 t.obs.extend_from_slice(&obs[i * od..(i + 1) * od]);
@@ -417,6 +431,33 @@ pub(super) fn sample_actions(
                 env.push(lo + (x + 1.0) * 0.5 * (hi - lo));
             }
             (net, EnvActions::Continuous(env))
+        }
+    }
+}
+
+/// Replaces row i of the actions by the environment's scripted goal-seeking
+/// action where `rows[i]` (the ladder's "return to a shown goal" rung).
+fn script_actions(
+    venv: &VecEnv,
+    spec: &NetSpec,
+    rows: &[bool],
+    net_actions: &mut [f32],
+    env_actions: &mut EnvActions,
+) {
+    let EnvActions::Continuous(env) = env_actions else {
+        return;
+    };
+    let a = spec.act_flat();
+    for i in (0..rows.len()).filter(|&i| rows[i]) {
+        // `Learner::new` refuses the setting for environments without one.
+        let Some(scripted) = venv.env(i).goal_seeking_action() else {
+            continue;
+        };
+        for (k, &x) in scripted.iter().enumerate().take(a) {
+            let (lo, hi) = (spec.act_low[k], spec.act_high[k]);
+            let x = x.clamp(lo, hi);
+            env[i * a + k] = x;
+            net_actions[i * a + k] = 2.0 * (x - lo) / (hi - lo) - 1.0;
         }
     }
 }

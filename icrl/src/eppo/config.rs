@@ -145,6 +145,27 @@ pub struct EppoConfig {
     /// resolved value; resuming with another is refused.
     #[serde(default = "default_physics_steps_per_action")]
     pub physics_steps_per_action: Option<usize>,
+    /// Hindsight task relabelling (Packer et al., NeurIPS 2021): the share of
+    /// sampled trajectories replayed as if the goal had been at a position
+    /// they reached ([`relabel`]): rewards, terminations and episode ends
+    /// recomputed, costs as recorded. It turns every trajectory into one
+    /// that found a goal, and those that pass it again into revisits, the
+    /// skill sparse rewards teach slowest. 0: off (the paper).
+    #[serde(default)]
+    pub relabel_prob: f64,
+    /// The ladder's "return to a shown goal" rung: the first episode of every
+    /// collected trajectory is driven to the goal by the environment's
+    /// scripted controller (Point and Car), so the success of episodes 2..K
+    /// measures revisiting alone. Off in every preset.
+    #[serde(default)]
+    pub scripted_first_episode: bool,
+    /// A dense reward for the critics during pretraining only, after PEARL's
+    /// sparse-reward point robot: each step's TD reward also gets this times
+    /// the decrease in distance to the goal (potential-based shaping, which
+    /// keeps the optimal policy). The tokens, and so the policy's context and
+    /// everything at evaluation, stay sparse. 0: off (the paper).
+    #[serde(default)]
+    pub dense_reward_coef: f64,
 }
 
 /// Absent from a config: one-step TD targets (the paper's).
@@ -239,6 +260,12 @@ impl EppoConfig {
             ),
             ("eps_start", self.eps_start, Range::UNIT),
             ("eps_end", self.eps_end, Range::UNIT),
+            ("relabel_prob", self.relabel_prob, Range::UNIT),
+            (
+                "dense_reward_coef",
+                self.dense_reward_coef,
+                Range::NON_NEGATIVE,
+            ),
         ])
         .or_else(bad)?;
         if self.k_min == 0 || self.k_min > self.k_max {

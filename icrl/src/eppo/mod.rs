@@ -52,6 +52,7 @@ mod collect;
 mod config;
 mod losses;
 mod net;
+mod relabel;
 mod replay;
 #[cfg(test)]
 pub(crate) mod tests;
@@ -63,7 +64,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use tch::{Device, nn};
 
-use safety_envs::{EnvName, EnvOptions, VecEnv, make_env};
+use safety_envs::{EnvName, EnvOptions, GoalRule, VecEnv, make_env};
 
 pub use agent::EppoAgent;
 pub use checkpoint::recorded_pretrain_tasks;
@@ -71,12 +72,14 @@ pub use collect::{RoundStats, search_rates};
 pub use config::{EppoConfig, EppoError, Exploration, memory_estimate, parse_device};
 pub use losses::{UpdateStats, lambda_update};
 pub use net::{EppoNet, NetSpec};
+pub use relabel::{pick_goal, relabel};
 pub use replay::{Replay, Trajectory};
 
 use crate::checkpoint::{MetricsWriter, RunDir};
 use crate::optim::{Adam, AdamConfig};
 use collect::mean;
 use losses::{losses, polyak};
+use relabel::relabel_some;
 use replay::make_batch;
 
 /// Everything a run carries between updates (and into checkpoints).
@@ -99,6 +102,8 @@ pub struct Learner {
     pub tasks_drawn: u64,
     pub rng: ChaCha8Rng,
     pub replay: Replay,
+    /// Where the environment's goal counts as reached (hindsight relabelling).
+    pub goal_rule: GoalRule,
 }
 
 impl Learner {
@@ -117,6 +122,13 @@ impl Learner {
             },
         )?;
         let spec = NetSpec::from_spaces(&probe.observation_space(), &probe.action_space())?;
+        if cfg.scripted_first_episode && probe.goal_seeking_action().is_none() {
+            return Err(EppoError::Config(format!(
+                "scripted_first_episode needs an environment with a scripted goal-seeking \
+                 controller (point, car); {env} has none: set scripted_first_episode = false"
+            )));
+        }
+        let goal_rule = probe.goal_rule();
         memory_estimate(&cfg, &spec)
             .check()
             .map_err(EppoError::Config)?;
@@ -144,6 +156,7 @@ impl Learner {
             updates: 0,
             env_steps: 0,
             tasks_drawn: 0,
+            goal_rule,
             env,
             spec,
             device,
@@ -167,8 +180,23 @@ impl Learner {
         // libtorch's generator (dropout, reparameterisation noise) is reseeded per
         // update, so a resumed run draws what the uninterrupted one would have.
         tch::manual_seed((self.cfg.seed ^ 0x5EED_0000).wrapping_add(self.updates) as i64);
-        let trajs = self.replay.sample(self.cfg.batch_size, &mut self.rng);
-        let batch = make_batch(&trajs, &self.cfg, &self.spec, &mut self.rng, self.device);
+        let sampled = self.replay.sample(self.cfg.batch_size, &mut self.rng);
+        let relabelled = relabel_some(
+            &sampled,
+            self.cfg.relabel_prob,
+            &self.spec,
+            &self.goal_rule,
+            &mut self.rng,
+        );
+        let trajs: Vec<&Trajectory> = sampled
+            .iter()
+            .zip(&relabelled)
+            .map(|(&t, r)| r.as_ref().unwrap_or(t))
+            .collect();
+        let mut batch = make_batch(&trajs, &self.cfg, &self.spec, &mut self.rng, self.device);
+        // Eq. (7) prices the costs the policy really paid: a relabelled
+        // episode cut at its new goal holds only part of them.
+        batch.max_violation = sampled.iter().map(|t| t.max_violation()).collect();
         let (lv, lc, lp, entropy, diag) =
             losses(&self.net, &self.target, &batch, self.lambda, &self.cfg)?;
         let loss = (&lv + &lc) * self.cfg.critic_weight + &lp;

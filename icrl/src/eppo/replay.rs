@@ -9,6 +9,8 @@ use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use tch::{Device, Tensor};
 
+use safety_envs::GoalRule;
+
 use super::config::EppoConfig;
 use super::net::NetSpec;
 use crate::tokens::{self, StepToken};
@@ -18,6 +20,8 @@ use crate::tokens::{self, StepToken};
 pub struct Trajectory {
     /// The per-episode cost budget delta.
     pub budget: f32,
+    /// The task's goal in observation terms ([`GoalRule`]; relabelling moves it).
+    pub goal: [f32; 2],
     /// (T, obs_dim) observations s_t.
     pub obs: Vec<f32>,
     /// (T, obs_dim) the observation a_t led to: s_{t+1}, or the episode's
@@ -172,6 +176,21 @@ pub(super) struct Batch {
     pub(super) max_violation: Vec<f32>,
 }
 
+/// The critics' pretraining-only dense reward for step `step` of `t`:
+/// `dense_reward_coef` x (distance to the goal before the step - after it),
+/// positions read through the goal rule's indices (the first two entries of
+/// every observation here). Zero when off; never in a token.
+fn dense_reward(t: &Trajectory, step: usize, spec: &NetSpec, cfg: &EppoConfig) -> f32 {
+    if cfg.dense_reward_coef == 0.0 {
+        return 0.0;
+    }
+    let od = spec.obs_dim;
+    let before = [t.obs[step * od], t.obs[step * od + 1]];
+    let after = [t.next_obs[step * od], t.next_obs[step * od + 1]];
+    let progress = GoalRule::distance(before, t.goal) - GoalRule::distance(after, t.goal);
+    cfg.dense_reward_coef as f32 * progress
+}
+
 pub(super) fn make_batch(
     trajs: &[&Trajectory],
     cfg: &EppoConfig,
@@ -245,7 +264,7 @@ pub(super) fn make_batch(
             );
             acts_f.extend_from_slice(&t.actions[step * a..(step + 1) * a]);
             acts_i.push(t.action_idx.get(step).copied().unwrap_or(0));
-            rew[k] = t.rewards[step] * cfg.reward_scale as f32;
+            rew[k] = (t.rewards[step] + dense_reward(t, step, spec, cfg)) * cfg.reward_scale as f32;
             cost[k] = t.costs[step];
             viol[k] = if violated[t.episode[step] as usize] {
                 1.0

@@ -99,6 +99,188 @@ fn collected_trajectories_follow_algorithm_1() {
     }
 }
 
+/// Two episodes on a grid (obs = position, one action value): episode 0
+/// passes (4, 6) at its second step and goes on to the time limit;
+/// episode 1 ends at its real goal (5, 5) without passing (4, 6).
+fn two_episode_trajectory() -> Trajectory {
+    let path: [([f32; 2], [f32; 2], f32); 5] = [
+        ([4.0, 4.0], [4.0, 5.0], 0.0),
+        ([4.0, 5.0], [4.0, 6.0], 1.0),
+        ([4.0, 6.0], [3.0, 6.0], 0.0),
+        ([4.0, 4.0], [5.0, 4.0], 1.0),
+        ([5.0, 4.0], [5.0, 5.0], 0.0),
+    ];
+    let mut t = Trajectory {
+        budget: 0.5,
+        ..Default::default()
+    };
+    for (s, (obs, next, cost)) in path.iter().enumerate() {
+        t.obs.extend_from_slice(obs);
+        t.next_obs.extend_from_slice(next);
+        t.actions.push(s as f32);
+        t.action_idx.push(s as i64);
+        t.costs.push(*cost);
+        t.start.push(s == 0 || s == 3);
+        t.ctg.push(if s == 0 || s == 3 {
+            0.5
+        } else {
+            0.5 - path[s - 1].2
+        });
+        t.episode.push(u32::from(s >= 3));
+        t.rewards.push(if s == 4 { 1.0 } else { 0.0 });
+        t.terminated.push(s == 4);
+        t.truncated.push(s == 2);
+    }
+    t.episode_returns = vec![0.0, 1.0];
+    t.episode_costs = vec![1.0, 1.0];
+    t.episode_success = vec![false, true];
+    t
+}
+
+const GRID_RULE: GoalRule = GoalRule {
+    xy: [0, 1],
+    radius: 0.0,
+    min_start_distance: 1.0,
+};
+
+#[test]
+fn relabelled_trajectory_is_one_where_that_position_was_the_goal() {
+    let t = two_episode_trajectory();
+    let r = relabel(&t, 2, 1, &GRID_RULE, [4.0, 6.0]);
+    // Episode 0 ends on arrival at (4, 6): the third step is cut.
+    // Episode 1 never arrives there: its real goal is no goal now, so it
+    // ends where it was recorded to, truncated, without reward.
+    assert_eq!(r.len(), 4);
+    assert_eq!(r.obs, [4.0, 4.0, 4.0, 5.0, 4.0, 4.0, 5.0, 4.0]);
+    assert_eq!(r.next_obs, [4.0, 5.0, 4.0, 6.0, 5.0, 4.0, 5.0, 5.0]);
+    assert_eq!(r.actions, [0.0, 1.0, 3.0, 4.0]);
+    assert_eq!(r.action_idx, [0, 1, 3, 4]);
+    assert_eq!(r.rewards, [0.0, 1.0, 0.0, 0.0]);
+    assert_eq!(r.terminated, [false, true, false, false]);
+    assert_eq!(r.truncated, [false, false, false, true]);
+    assert_eq!(r.start, [true, false, true, false]);
+    assert_eq!(r.episode, [0, 0, 1, 1]);
+    assert_eq!(r.episode_returns, [1.0, 0.0]);
+    assert_eq!(r.episode_success, [true, false]);
+    // Costs, CTGs and the budget as recorded, for the steps kept.
+    assert_eq!(r.costs, [0.0, 1.0, 1.0, 0.0]);
+    assert_eq!(r.ctg, [0.5, 0.5, 0.5, -0.5]);
+    assert_eq!(r.episode_costs, [1.0, 1.0]);
+    assert_eq!(r.budget, t.budget);
+    assert_eq!(r.max_violation(), 0.5);
+    // Relabelled at its own goal, a trajectory is unchanged.
+    let same = relabel(&t, 2, 1, &GRID_RULE, [5.0, 5.0]);
+    assert_eq!(same.rewards, t.rewards);
+    assert_eq!(same.terminated, t.terminated);
+    assert_eq!(same.truncated, t.truncated);
+    assert_eq!(same.obs, t.obs);
+    assert_eq!(same.episode_success, t.episode_success);
+}
+
+#[test]
+fn relabelled_goals_are_reached_positions_away_from_the_start() {
+    let t = two_episode_trajectory();
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let far = GoalRule {
+        min_start_distance: 1.9,
+        ..GRID_RULE
+    };
+    for _ in 0..50 {
+        let g = pick_goal(&t, 2, &GRID_RULE, &mut rng).unwrap();
+        let arrived = t.next_obs.chunks(2).any(|o| o == g);
+        assert!(arrived && g != [4.0, 4.0], "{g:?}");
+        // Only (4, 6) and (3, 6) are 2 or more from the start (4, 4).
+        let g = pick_goal(&t, 2, &far, &mut rng).unwrap();
+        assert!(g == [4.0, 6.0] || g == [3.0, 6.0], "{g:?}");
+    }
+    let none = GoalRule {
+        min_start_distance: 10.0,
+        ..GRID_RULE
+    };
+    assert_eq!(pick_goal(&t, 2, &none, &mut rng), None);
+}
+
+#[test]
+fn the_scripted_first_episode_reaches_the_goal_and_relabelled_updates_run() {
+    let mut cfg = tiny();
+    cfg.max_episode_steps = 75;
+    cfg.model.max_len = 150;
+    cfg.n_envs = 2;
+    cfg.batch_size = 2;
+    cfg.physics_steps_per_action = Some(50);
+    cfg.scripted_first_episode = true;
+    cfg.relabel_prob = 1.0;
+    let darkroom = EppoConfig {
+        physics_steps_per_action: None,
+        ..cfg.clone()
+    };
+    let e = Learner::new(darkroom, EnvName::DarkRoom).err().unwrap();
+    assert!(e.to_string().contains("scripted_first_episode"), "{e}");
+    let mut learner = Learner::new(cfg.clone(), EnvName::Point).unwrap();
+    let envs = (0..cfg.n_envs)
+        .map(|_| {
+            make_env(
+                EnvName::Point,
+                &EnvOptions {
+                    max_episode_steps: Some(cfg.max_episode_steps),
+                    physics_steps_per_action: cfg.physics_steps_per_action,
+                },
+            )
+            .unwrap()
+        })
+        .collect();
+    let mut venv = VecEnv::new(envs, 1, true).unwrap();
+    learner.collect(&mut venv).unwrap();
+    for t in &learner.replay.trajectories {
+        assert!(t.episode_success[0], "the controller reaches every goal");
+        assert!(t.actions.iter().all(|x| x.abs() <= 1.0));
+    }
+    let stats = learner.update().unwrap();
+    assert!(stats.value_loss.is_finite() && stats.policy_loss.is_finite());
+}
+
+#[test]
+fn the_dense_critic_reward_shapes_targets_and_leaves_tokens_sparse() {
+    let (mut learner, mut venv) = tiny_learner(0);
+    learner.collect(&mut venv).unwrap();
+    let trajs: Vec<&Trajectory> = learner.replay.trajectories.iter().collect();
+    let sparse_cfg = learner.cfg.clone();
+    let dense_cfg = EppoConfig {
+        dense_reward_coef: 0.5,
+        ..sparse_cfg.clone()
+    };
+    let batch = |cfg: &EppoConfig| {
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        make_batch(&trajs, cfg, &learner.spec, &mut rng, Device::Cpu)
+    };
+    let (sparse, dense) = (batch(&sparse_cfg), batch(&dense_cfg));
+    assert_eq!(
+        to_vec(&sparse.tokens),
+        to_vec(&dense.tokens),
+        "tokens stay sparse"
+    );
+    let (rs, rd) = (to_vec(&sparse.rewards), to_vec(&dense.rewards));
+    let valid = to_vec(&sparse.valid);
+    let l = rs.len() / trajs.len();
+    let scale = sparse_cfg.reward_scale as f32;
+    let mut shaped = 0;
+    for (j, t) in trajs.iter().enumerate() {
+        for step in 0..t.len().min(l) {
+            let k = j * l + step;
+            assert_eq!(valid[k], 1.0);
+            let d = |o: &[f32]| GoalRule::distance([o[0], o[1]], t.goal);
+            let progress =
+                d(&t.obs[step * 2..step * 2 + 2]) - d(&t.next_obs[step * 2..step * 2 + 2]);
+            assert!(
+                (rd[k] - rs[k] - 0.5 * progress * scale).abs() < 1e-5,
+                "step {step}"
+            );
+            shaped += usize::from(progress != 0.0);
+        }
+    }
+    assert!(shaped > 0, "some step moved relative to the goal");
+}
+
 #[test]
 fn the_goal_enters_the_context_with_its_reward() {
     // One fixed task (the ladder's first rung): collect until an episode
@@ -299,6 +481,7 @@ fn terminated_and_truncated_reach_the_targets_apart() {
     // terminated at the goal, 1.0.
     let t = Trajectory {
         budget: 1.0,
+        goal: [0.0; 2],
         obs: vec![0.0, 0.25, 0.5, 0.75],
         next_obs: vec![0.25, 0.9, 0.75, 1.0],
         actions: vec![1.0, 0.0, 1.0, 0.0, 0.0, 1.0, 0.0, 1.0],
@@ -446,6 +629,7 @@ fn continuous_shapes_and_gradients() {
     let n = 5;
     let t = Trajectory {
         budget: 10.0,
+        goal: [0.0; 2],
         obs: (0..n * 3).map(|i| i as f32 * 0.1).collect(),
         next_obs: (3..n * 3 + 3).map(|i| i as f32 * 0.1).collect(),
         actions: (0..n * 2).map(|i| (i as f32 * 0.37).sin()).collect(),
