@@ -12,6 +12,7 @@ use safety_envs::EnvName;
 
 use super::Learner;
 use super::config::{EppoConfig, EppoError};
+use super::multiplier::Multiplier;
 use super::net::NetSpec;
 use crate::checkpoint::{CheckpointError, RunDir, read_manifest};
 use crate::task_seeds::PretrainTasks;
@@ -26,7 +27,8 @@ impl Learner {
     /// moments, lambda, counters, RNG state, resolved config).
     pub fn save_checkpoint(&self, run: &RunDir) -> Result<PathBuf, EppoError> {
         let state = TrainState {
-            lambda: self.lambda,
+            lambda: self.multiplier.lambda,
+            multiplier: Some(self.multiplier),
             updates: self.updates,
             env_steps: self.env_steps,
             rng_seed: self.rng.get_seed(),
@@ -133,7 +135,11 @@ impl Learner {
                 "the environment's spaces differ from the checkpoint's".into(),
             ));
         }
-        learner.lambda = state.lambda;
+        // Checkpoints from before the PID terms hold lambda alone: the
+        // integral Eq. (7) moved.
+        learner.multiplier = state
+            .multiplier
+            .unwrap_or_else(|| Multiplier::new(state.lambda));
         learner.updates = state.updates;
         learner.env_steps = state.env_steps;
         // Checkpoints from before tasks were recorded restart the count.
@@ -167,6 +173,9 @@ impl Learner {
 #[derive(Debug, Serialize, Deserialize)]
 pub(super) struct TrainState {
     pub(super) lambda: f64,
+    /// The multiplier's whole state (absent in older checkpoints).
+    #[serde(default)]
+    pub(super) multiplier: Option<Multiplier>,
     pub(super) updates: u64,
     pub(super) env_steps: u64,
     pub(super) rng_seed: [u8; 32],

@@ -11,6 +11,7 @@ use thiserror::Error;
 
 use safety_envs::EnvError;
 
+use super::multiplier::Gains;
 use super::net::NetSpec;
 use crate::checkpoint::CheckpointError;
 use crate::model::{self, ModelError};
@@ -96,6 +97,16 @@ pub struct EppoConfig {
     /// stops search before it is learned; results/eppo_ladder).
     #[serde(default)]
     pub lambda_warmup_updates: u64,
+    /// Proportional gain of the PID Lagrangian (Stooke et al., 2020) on the
+    /// smoothed violation (`multiplier.rs`); 0 with `lambda_kd` 0: Eq. (7).
+    #[serde(default)]
+    pub lambda_kp: f64,
+    /// Derivative gain of the PID Lagrangian on the smoothed violation's rise.
+    #[serde(default)]
+    pub lambda_kd: f64,
+    /// EMA weight of the past in the smoothed violation of the P and D terms.
+    #[serde(default = "default_lambda_smoothing")]
+    pub lambda_smoothing: f64,
     /// Weight of the critic losses against the actor loss.
     pub critic_weight: f64,
     /// Entropy bonus weight in the actor loss.
@@ -166,6 +177,11 @@ pub struct EppoConfig {
     /// everything at evaluation, stay sparse. 0: off (the paper).
     #[serde(default)]
     pub dense_reward_coef: f64,
+}
+
+/// Absent from a config: the PID Lagrangian's usual smoothing.
+fn default_lambda_smoothing() -> f64 {
+    0.9
 }
 
 /// Absent from a config: one-step TD targets (the paper's).
@@ -261,6 +277,13 @@ impl EppoConfig {
             ("eps_start", self.eps_start, Range::UNIT),
             ("eps_end", self.eps_end, Range::UNIT),
             ("relabel_prob", self.relabel_prob, Range::UNIT),
+            ("lambda_kp", self.lambda_kp, Range::NON_NEGATIVE),
+            ("lambda_kd", self.lambda_kd, Range::NON_NEGATIVE),
+            (
+                "lambda_smoothing",
+                self.lambda_smoothing,
+                Range::UNIT_OPEN_HIGH,
+            ),
             (
                 "dense_reward_coef",
                 self.dense_reward_coef,
@@ -346,6 +369,18 @@ impl EppoConfig {
                 self.eps_last_start.unwrap_or(self.eps_start),
                 self.eps_last_end.unwrap_or(self.eps_end),
             ),
+        }
+    }
+
+    /// The multiplier's gains: Eq. (7)'s eta as the integral gain, the PID
+    /// terms, the cap.
+    pub fn multiplier_gains(&self) -> Gains {
+        Gains {
+            ki: self.lambda_lr,
+            kp: self.lambda_kp,
+            kd: self.lambda_kd,
+            smoothing: self.lambda_smoothing,
+            max: self.lambda_max,
         }
     }
 }

@@ -51,6 +51,7 @@ mod checkpoint;
 mod collect;
 mod config;
 mod losses;
+mod multiplier;
 mod net;
 mod relabel;
 mod replay;
@@ -71,6 +72,7 @@ pub use checkpoint::recorded_pretrain_tasks;
 pub use collect::{RoundStats, search_rates};
 pub use config::{EppoConfig, EppoError, Exploration, memory_estimate, parse_device};
 pub use losses::{UpdateStats, lambda_update};
+pub use multiplier::{Gains, Multiplier};
 pub use net::{EppoNet, NetSpec};
 pub use relabel::{pick_goal, relabel};
 pub use replay::{Replay, Trajectory};
@@ -93,7 +95,8 @@ pub struct Learner {
     pub target_vs: nn::VarStore,
     pub target: EppoNet,
     pub opt: Adam,
-    pub lambda: f64,
+    /// The cost multiplier lambda and its PID state (`multiplier.rs`).
+    pub multiplier: Multiplier,
     pub updates: u64,
     pub env_steps: u64,
     /// Pretraining tasks drawn so far: task i comes from
@@ -152,7 +155,7 @@ impl Learner {
         Ok(Learner {
             rng: ChaCha8Rng::seed_from_u64(cfg.seed),
             replay: Replay::new(cfg.replay_capacity),
-            lambda: cfg.lambda_init,
+            multiplier: Multiplier::new(cfg.lambda_init),
             updates: 0,
             env_steps: 0,
             tasks_drawn: 0,
@@ -197,8 +200,13 @@ impl Learner {
         // Eq. (7) prices the costs the policy really paid: a relabelled
         // episode cut at its new goal holds only part of them.
         batch.max_violation = sampled.iter().map(|t| t.max_violation()).collect();
-        let (lv, lc, lp, entropy, diag) =
-            losses(&self.net, &self.target, &batch, self.lambda, &self.cfg)?;
+        let (lv, lc, lp, entropy, diag) = losses(
+            &self.net,
+            &self.target,
+            &batch,
+            self.multiplier.lambda,
+            &self.cfg,
+        )?;
         let loss = (&lv + &lc) * self.cfg.critic_weight + &lp;
         // A NaN or infinite loss or gradient is never applied: the weights
         // stay those of the last good update and `train` stops with this.
@@ -216,12 +224,8 @@ impl Learner {
                 checkpoint: None,
             })?;
         if self.updates >= self.cfg.lambda_warmup_updates {
-            self.lambda = lambda_update(
-                self.lambda,
-                &batch.max_violation,
-                self.cfg.lambda_lr,
-                self.cfg.lambda_max,
-            );
+            self.multiplier
+                .update(&batch.max_violation, &self.cfg.multiplier_gains());
         }
         polyak(&self.target_vs, &self.vs, self.cfg.tau);
         self.updates += 1;
@@ -231,7 +235,7 @@ impl Learner {
             policy_loss: lp.double_value(&[]),
             entropy: entropy.double_value(&[]),
             grad_norm,
-            lambda: self.lambda,
+            lambda: self.multiplier.lambda,
             q_mean: diag.q_mean.double_value(&[]),
             target_mean: diag.target_mean.double_value(&[]),
             log_std_mean: diag.log_std_mean.map_or(f64::NAN, |t| t.double_value(&[])),
@@ -346,7 +350,7 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
         let line = format!(
             "{}  lambda {:.3}  {ups:.2} upd/s",
             recent.progress_line(random),
-            learner.lambda
+            learner.multiplier.lambda
         );
         if log_lines && last_log_line.elapsed().as_secs() >= 30 {
             eprintln!(
@@ -376,7 +380,7 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
         last_checkpoint: last_ckpt,
         updates: learner.updates,
         env_steps: learner.env_steps,
-        lambda: learner.lambda,
+        lambda: learner.multiplier.lambda,
         random,
     })
 }
@@ -426,7 +430,7 @@ fn round_record(
         "discovery_rate": round.discovery_rate,
         "revisit_rate": round.revisit_rate,
         "found_goal": round.found,
-        "lambda": learner.lambda,
+        "lambda": learner.multiplier.lambda,
         "losses/value_loss": avg(|s| s.value_loss),
         "losses/cost_value_loss": avg(|s| s.cost_value_loss),
         "losses/policy_loss": avg(|s| s.policy_loss),

@@ -409,6 +409,62 @@ fn critic_losses_fall_on_a_fixed_batch() {
 }
 
 #[test]
+fn the_pid_multiplier_is_eq_7_without_its_p_and_d_terms_and_damps_with_them() {
+    let integrator = Gains {
+        ki: 0.1,
+        kp: 0.0,
+        kd: 0.0,
+        smoothing: 0.9,
+        max: 1.5,
+    };
+    let batches: Vec<Vec<f32>> = (0..60)
+        .map(|i| {
+            if i < 30 {
+                vec![3.0, -1.0]
+            } else {
+                vec![-2.0, -0.5]
+            }
+        })
+        .collect();
+    let (mut m, mut lambda) = (Multiplier::new(0.2), 0.2);
+    for b in &batches {
+        m.update(b, &integrator);
+        lambda = lambda_update(lambda, b, 0.1, 1.5);
+        assert_eq!(m.lambda, lambda, "Eq. (7) exactly");
+    }
+    // With P and D: lambda answers a violation at once, above the integral,
+    // and falls below it as soon as the cost is under budget.
+    let pid = Gains {
+        kp: 0.5,
+        kd: 1.0,
+        ..integrator
+    };
+    let mut m = Multiplier::new(0.0);
+    m.update(&[1.0], &pid);
+    assert!(m.lambda > m.integral, "{m:?}");
+    assert!((m.integral - 0.1).abs() < 1e-12);
+    // kp e + kd rise, e = 0.1 after one step from 0.
+    assert!(
+        (m.lambda - (0.1 + 0.5 * 0.1 + 1.0 * 0.1)).abs() < 1e-9,
+        "{m:?}"
+    );
+    for _ in 0..20 {
+        m.update(&[1.0], &pid);
+    }
+    assert!(m.lambda <= 1.5, "capped: {m:?}");
+    let before = m;
+    // The smoothed violation turns negative after three batches under budget.
+    for _ in 0..3 {
+        m.update(&[-3.0], &pid);
+    }
+    assert!(m.smoothed < 0.0, "{m:?}");
+    assert!(m.lambda < m.integral, "damped below the integral: {m:?}");
+    assert!(m.integral < before.integral);
+    m.update(&[], &pid);
+    assert!(m.lambda >= 0.0);
+}
+
+#[test]
 fn lambda_rises_falls_and_respects_the_cap() {
     let mut lambda = 0.0;
     let mut seen = vec![];
