@@ -54,7 +54,8 @@ struct DatasetArgs {
     /// Environment.
     #[arg(long, value_parser = ["darkroom", "point", "car"])]
     env: String,
-    /// Output HDF5 file (written to `<out>.tmp`, then renamed).
+    /// Output HDF5 file (written beside it, then renamed); an existing file is
+    /// refused unless --force.
     #[arg(long)]
     out: PathBuf,
     /// Pretraining tasks (centre-oriented).
@@ -86,6 +87,10 @@ struct DatasetArgs {
     /// the file's config.
     #[arg(long, value_name = "N")]
     keep_episodes: Option<usize>,
+    /// Replace an existing history file at --out (never a device, link,
+    /// folder or checkpoint file).
+    #[arg(long)]
+    force: bool,
 }
 
 /// A seed: a whole number from 0 to 2^64 - 1 (clap would call `-1` an
@@ -118,6 +123,7 @@ fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
         source,
         physics_steps_per_action: args.physics_steps_per_action,
         keep_episodes: args.keep_episodes,
+        force: args.force,
     })?;
     println!(
         "wrote {}: {} histories, {} steps{}, {} episodes, {:.1} MB in {:.0} s ({:.0} environment steps/s{}); \
