@@ -44,6 +44,9 @@ enum Command {
         /// Bins of learning progress (at least 1).
         #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u32).range(1..=100_000))]
         bins: u32,
+        /// Replace existing STEM.png and STEM.svg.
+        #[arg(long)]
+        force: bool,
     },
     /// Evaluate checkpoints in context on held-out edge-oriented tasks: JSON, CSV, figures.
     Eval(icrl_eval::EvalArgs),
@@ -350,8 +353,14 @@ fn main() -> ExitCode {
                 .map(|f| println!("wrote {}", f.display()))
                 .map_err(Into::into)
         }
-        Command::PlotHistories { file, out, bins } => {
-            icrl::plots::training::plot_histories(&file, &out, bins as usize)
+        Command::PlotHistories {
+            file,
+            out,
+            bins,
+            force,
+        } => {
+            let existing = safety_envs::output::Existing::from_force(force);
+            icrl::plots::training::plot_histories(&file, &out, bins as usize, existing)
                 .map(|fs| fs.iter().for_each(|f| println!("wrote {}", f.display())))
                 .map_err(Into::into)
         }
