@@ -25,6 +25,7 @@ use std::fs;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use safety_envs::output::Lock;
 use safety_envs::{EnvName, OLD_PHYSICS_STEPS_PER_ACTION, PHYSICS_STEPS_PER_ACTION};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -334,6 +335,7 @@ impl RunDir {
 
     /// [`RunDir::create`] with the base name given.
     pub fn create_named(root: &Path, base: &str) -> Result<Self, CheckpointError> {
+        refuse_nesting(root)?;
         fs::create_dir_all(root).map_err(io(root))?;
         for n in 1..10_000u32 {
             let name = if n == 1 {
@@ -372,6 +374,44 @@ impl RunDir {
         Ok(RunDir {
             path: path.to_path_buf(),
         })
+    }
+
+    /// Takes the run's lock (`RUN/.lock`, an OS file lock the kernel
+    /// releases when the process dies): a second process training, resuming
+    /// or extending the same run is refused with the first's pid. Hold the
+    /// returned lock for as long as the run is written.
+    pub fn lock(&self) -> Result<Lock, CheckpointError> {
+        Lock::acquire(
+            &self.path.join(".lock"),
+            &format!("the run {}", self.path.display()),
+            false,
+        )
+        .map_err(|e| CheckpointError::Invalid {
+            path: e.path,
+            problem: e.problem,
+            fix: "one process per run".into(),
+        })
+    }
+
+    /// Fails, naming what is gone, when the run folder or its
+    /// `checkpoints/` folder disappeared (deleted or moved while the run
+    /// was training): the run stops instead of writing into a new, partial
+    /// folder.
+    pub fn check_present(&self) -> Result<(), CheckpointError> {
+        for (what, path) in [
+            ("the run folder", self.path.clone()),
+            ("its checkpoints/ folder", self.path.join("checkpoints")),
+        ] {
+            if fs::symlink_metadata(&path).is_err() {
+                return Err(CheckpointError::Invalid {
+                    path,
+                    problem: format!("{what} is gone (deleted or moved while the run was training)"),
+                    fix: "training stopped; restore the folder from a copy and resume it, or start a new run"
+                        .into(),
+                });
+            }
+        }
+        Ok(())
     }
 
     /// Resolves `--resume PATH`: a run folder (its latest checkpoint) or one
@@ -447,13 +487,15 @@ impl RunDir {
         keep: usize,
         write: impl FnOnce(&Path) -> Result<(), CheckpointError>,
     ) -> Result<PathBuf, CheckpointError> {
+        self.check_present()?;
         let root = self.path.join("checkpoints");
         let tmp = root.join(format!(".tmp_step_{updates}"));
         let dest = root.join(format!("step_{updates}"));
         if tmp.exists() {
             fs::remove_dir_all(&tmp).map_err(io(&tmp))?;
         }
-        fs::create_dir_all(&tmp).map_err(io(&tmp))?;
+        // Not create_dir_all: a run folder deleted meanwhile is not remade.
+        fs::create_dir(&tmp).map_err(io(&tmp))?;
         write(&tmp)?;
         let mut files = BTreeMap::new();
         let mut sha256 = BTreeMap::new();
@@ -485,7 +527,7 @@ impl RunDir {
         f.write_all(text.as_bytes()).map_err(io(&mpath))?;
         f.sync_all().map_err(io(&mpath))?;
         if dest.exists() {
-            fs::remove_dir_all(&dest).map_err(io(&dest))?;
+            remove_checkpoint(&dest)?;
         }
         fs::rename(&tmp, &dest).map_err(io(&dest))?;
         self.prune(keep)?;
@@ -512,10 +554,80 @@ impl RunDir {
         steps.sort();
         let excess = steps.len().saturating_sub(keep);
         for (_, p) in steps.into_iter().take(excess) {
-            fs::remove_dir_all(&p).map_err(io(&p))?;
+            remove_checkpoint(&p)?;
         }
         Ok(())
     }
+}
+
+/// Removes one checkpoint: only the files its manifest lists and the
+/// manifest, then the folder if that left it empty. A `step_N` folder
+/// without a readable manifest is not a checkpoint and is left alone, and
+/// so is anything else in it (a user's notes, a nested folder), with a
+/// warning naming what was kept.
+fn remove_checkpoint(dir: &Path) -> Result<(), CheckpointError> {
+    let manifest = fs::read_to_string(dir.join(MANIFEST))
+        .ok()
+        .and_then(|t| serde_json::from_str::<Manifest>(&t).ok());
+    let Some(manifest) = manifest else {
+        eprintln!(
+            "warning: {} has no readable {MANIFEST}: not a checkpoint, so it was not removed",
+            dir.display()
+        );
+        return Ok(());
+    };
+    for name in manifest.files.keys() {
+        // Manifest names are plain file names; anything else is not ours.
+        if Path::new(name).components().count() != 1 {
+            continue;
+        }
+        let p = dir.join(name);
+        if fs::symlink_metadata(&p).is_ok_and(|m| m.is_file()) {
+            fs::remove_file(&p).map_err(io(&p))?;
+        }
+    }
+    let m = dir.join(MANIFEST);
+    fs::remove_file(&m).map_err(io(&m))?;
+    if fs::remove_dir(dir).is_err() {
+        eprintln!(
+            "warning: {} holds files that are not part of the checkpoint: the checkpoint's files were \
+             removed, the rest was kept",
+            dir.display()
+        );
+    }
+    Ok(())
+}
+
+/// Refuses to create runs under `root` when `root` lies inside a run folder
+/// or a checkpoint folder: pruning and resuming the outer run would remove
+/// or mix the inner run's files.
+fn refuse_nesting(root: &Path) -> Result<(), CheckpointError> {
+    let Some(existing) = root
+        .ancestors()
+        .find(|a| !a.as_os_str().is_empty() && a.exists())
+    else {
+        return Ok(());
+    };
+    let Ok(existing) = existing.canonicalize() else {
+        return Ok(());
+    };
+    for a in existing.ancestors() {
+        let is_checkpoint = a.join(MANIFEST).is_file();
+        let is_run = a.join("checkpoints").is_dir()
+            && (a.join("config.toml").is_file() || a.join("spec.json").is_file());
+        if is_checkpoint || is_run {
+            return Err(CheckpointError::Invalid {
+                path: root.to_path_buf(),
+                problem: format!(
+                    "it lies inside the {} {}; a run nested in another would be pruned or mixed with its files",
+                    if is_checkpoint { "checkpoint" } else { "run" },
+                    a.display()
+                ),
+                fix: "pass an --out folder outside every run folder".into(),
+            });
+        }
+    }
+    Ok(())
 }
 
 /// The sentence of a "training stopped" error that names the last good
@@ -583,8 +695,24 @@ impl MetricsWriter {
         })
     }
 
-    /// Writes one record and flushes it.
+    /// Writes one record and flushes it. Fails when `metrics.jsonl` is no
+    /// longer the file opened (deleted or moved with its run folder): the
+    /// records would go nowhere.
     pub fn write(&mut self, record: &serde_json::Value) -> Result<(), CheckpointError> {
+        use std::os::unix::fs::MetadataExt;
+        let same = match (self.file.metadata(), fs::metadata(&self.path)) {
+            (Ok(a), Ok(b)) => a.ino() == b.ino() && a.dev() == b.dev(),
+            _ => false,
+        };
+        if !same {
+            return Err(CheckpointError::Invalid {
+                path: self.path.clone(),
+                problem: "the run's metrics file is gone (its run folder was deleted or moved while training)"
+                    .into(),
+                fix: "training stopped; restore the folder from a copy and resume it, or start a new run"
+                    .into(),
+            });
+        }
         let line = record.to_string();
         writeln!(self.file, "{line}").map_err(io(&self.path))?;
         self.file.flush().map_err(io(&self.path))
@@ -786,5 +914,75 @@ mod tests {
             0
         );
         fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn pruning_removes_only_checkpoint_files_and_runs_do_not_nest() {
+        let root = std::env::temp_dir().join(format!("icrl-ckpt-prune-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&root);
+        let run = RunDir::create(&root, "darkroom", "test", 1).unwrap();
+        run.write_config("x = 1").unwrap();
+        let write = |step: u64| {
+            run.write_checkpoint(
+                step,
+                "test",
+                "darkroom",
+                None,
+                serde_json::json!({}),
+                2,
+                |d| fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d)),
+            )
+            .unwrap()
+        };
+        let first = write(10);
+        // A user's notes in a checkpoint, and a run nested inside one: refused.
+        fs::write(first.join("notes.txt"), "mine").unwrap();
+        let e = RunDir::create(&first, "darkroom", "test", 2)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("lies inside the checkpoint"), "{e}");
+        let e = RunDir::create(&run.path.join("sub"), "darkroom", "test", 2)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("lies inside the run"), "{e}");
+        // A step_N folder that is no checkpoint.
+        let fake = run.path.join("checkpoints/step_1");
+        fs::create_dir(&fake).unwrap();
+        fs::write(fake.join("data.txt"), "x").unwrap();
+        write(20);
+        write(30);
+        assert_eq!(fs::read_to_string(first.join("notes.txt")).unwrap(), "mine");
+        assert!(!first.join("w.bin").exists() && !first.join(MANIFEST).exists());
+        assert!(fake.join("data.txt").exists(), "not a checkpoint: kept");
+        assert!(run.path.join("checkpoints/step_20").is_dir());
+        fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn a_run_whose_folder_disappears_stops_instead_of_remaking_it() {
+        let root = std::env::temp_dir().join(format!("icrl-ckpt-gone-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&root);
+        let run = RunDir::create(&root, "darkroom", "test", 1).unwrap();
+        run.write_config("x = 1").unwrap();
+        let _lock = run.lock().unwrap();
+        let e = run.lock().unwrap_err().to_string();
+        assert!(e.contains(&format!("pid {}", std::process::id())), "{e}");
+        let mut metrics = MetricsWriter::open(&run.metrics_path()).unwrap();
+        metrics.write(&serde_json::json!({"updates": 1})).unwrap();
+        fs::remove_dir_all(&run.path).unwrap();
+        let e = metrics
+            .write(&serde_json::json!({"updates": 2}))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("metrics file is gone"), "{e}");
+        let e = run
+            .write_checkpoint(5, "test", "darkroom", None, serde_json::json!({}), 0, |d| {
+                fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d))
+            })
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("the run folder is gone"), "{e}");
+        assert!(!run.path.exists(), "the run folder is not remade");
+        fs::remove_dir_all(&root).unwrap();
     }
 }
