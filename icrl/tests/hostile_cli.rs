@@ -116,3 +116,207 @@ fn dataset_never_replaces_what_is_not_ours() {
     assert!(left.is_empty(), "no temporary or lock file left: {left:?}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A tiny darkroom EPPO run (2 updates) pretrained on budgets [2, 4];
+/// returns its run folder.
+fn tiny_eppo_run(out: &Path) -> PathBuf {
+    let mut args = vec![
+        "pretrain",
+        "--env",
+        "darkroom",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    for set in [
+        "max_episode_steps=6",
+        "k_min=2",
+        "k_max=2",
+        "n_envs=2",
+        "batch_size=2",
+        "replay_capacity=1000",
+        "encoder_hidden=16",
+        "head_hidden=16",
+        "model.d_model=16",
+        "model.n_heads=2",
+        "model.n_layers=1",
+        "model.d_ff=32",
+        "model.max_len=12",
+        "total_updates=2",
+        "updates_per_round=2",
+        "learning_starts=0",
+        "checkpoint_every=2",
+        "torch_threads=1",
+        "env_threads=1",
+        "ctg_min=2",
+        "ctg_max=4",
+    ] {
+        args.extend(["--set", set]);
+    }
+    succeeded(&icrl(&args));
+    let run = std::fs::read_dir(out)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    assert!(run.join("checkpoints/step_2").is_dir(), "{}", run.display());
+    run
+}
+
+/// `eval` of `checkpoints` (none: the random policy alone), tiny.
+fn eval(checkpoints: &[&Path], out: &Path, extra: &[&str]) -> Output {
+    let out = s(out);
+    let mut args = vec![
+        "eval",
+        "--env",
+        "darkroom",
+        "--tasks",
+        "2",
+        "--episodes",
+        "2",
+        "--n-budgets",
+        "3",
+        "--threads",
+        "1",
+        "--out",
+        &out,
+    ];
+    if extra.contains(&"--n-budgets") {
+        args.retain(|a| *a != "--n-budgets" && *a != "3");
+    }
+    let cks: Vec<String> = checkpoints.iter().map(|c| s(c)).collect();
+    for c in &cks {
+        args.extend(["--checkpoint", c.as_str()]);
+    }
+    args.extend(extra);
+    icrl(&args)
+}
+
+#[test]
+fn eval_outputs_conditions_and_reports_are_checked() {
+    let dir = tmp("eval");
+    let run = tiny_eppo_run(&dir.join("runs"));
+    let out = dir.join("eval");
+    // Bad 8: the random policy is judged against the agent's budgets.
+    succeeded(&eval(&[&run], &out, &[]));
+    let budgets = |name: &str| -> Vec<f64> {
+        let v: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join(name)).unwrap()).unwrap();
+        v["result"]["conditions"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| c["ctg"].as_f64().unwrap())
+            .collect()
+    };
+    let (agent, random) = (
+        budgets("eppo_darkroom.json"),
+        budgets("random_darkroom.json"),
+    );
+    assert!(agent.iter().all(|b| (2.0..=4.0).contains(b)), "{agent:?}");
+    assert_eq!(agent, random, "the random policy gets the agent's budgets");
+    // Bad 1: existing reports are refused before evaluating; --force replaces.
+    refused(&eval(&[&run], &out, &[]), "exists already: pass --force");
+    succeeded(&eval(&[&run], &out, &["--force"]));
+    // Bad 4: two reports of one name.
+    refused(
+        &eval(&[&run, &run], &dir.join("eval2"), &[]),
+        "distinct --label",
+    );
+    refused(
+        &eval(
+            &[&run, &run],
+            &dir.join("eval2"),
+            &["--label", "a", "--label", "a"],
+        ),
+        "distinct --label",
+    );
+    let two = dir.join("eval3");
+    let o = eval(
+        &[&run, &run],
+        &two,
+        &["--label", "a", "--label", "b", "--no-random"],
+    );
+    let stdout = succeeded(&o);
+    let n = std::fs::read_dir(&two).unwrap().count();
+    assert!(
+        stdout.contains(&format!("wrote {n} files")),
+        "{stdout} vs {n} files"
+    );
+    // Bad 2 and 3: sizes under the memory estimate, conditioning in range.
+    let t = std::time::Instant::now();
+    refused(
+        &eval(&[&run], &dir.join("e4"), &["--n-budgets", "100000000000"]),
+        "needs about",
+    );
+    assert!(t.elapsed().as_secs() < 30, "refused before sampling");
+    refused(
+        &eval(&[], &dir.join("e4"), &["--rtg", "1e30"]),
+        "--rtg 1000000000000000000000000000000: must be in [0, 10000]",
+    );
+    refused(
+        &eval(&[], &dir.join("e4"), &["--budgets", "1e30"]),
+        "must be in [0, 10000]",
+    );
+    // Bad 5: a damaged report in --from is named, not skipped.
+    let json = out.join("eppo_darkroom.json");
+    let bytes = std::fs::read(&json).unwrap();
+    std::fs::write(&json, &bytes[..bytes.len() / 2]).unwrap();
+    refused(
+        &icrl(&["eval", "--from", &s(&out), "--out", &s(&dir.join("all"))]),
+        "eppo_darkroom.json is not readable JSON",
+    );
+    std::fs::write(&json, "{\"a\": 1}").unwrap();
+    refused(
+        &icrl(&["eval", "--from", &s(&out), "--out", &s(&dir.join("all"))]),
+        "not an icrl eval report",
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn a_run_held_by_another_process_is_refused_with_its_pid() {
+    let dir = tmp("lock");
+    let run = tiny_eppo_run(&dir.join("runs"));
+    // Another process holds the run (this test, through the same OS lock).
+    let lock = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(run.join(".lock"))
+        .unwrap();
+    lock.try_lock().unwrap();
+    std::fs::write(run.join(".lock"), format!("{}\n", std::process::id())).unwrap();
+    let before = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+    refused(
+        &icrl(&[
+            "pretrain",
+            "--env",
+            "darkroom",
+            "--resume",
+            &s(&run),
+            "--set",
+            "total_updates=4",
+        ]),
+        &format!(
+            "is in use by another icrl process (pid {})",
+            std::process::id()
+        ),
+    );
+    assert_eq!(
+        std::fs::read_to_string(run.join("metrics.jsonl")).unwrap(),
+        before
+    );
+    drop(lock);
+    // Released (as when its process dies): the resume goes ahead.
+    succeeded(&icrl(&[
+        "pretrain",
+        "--env",
+        "darkroom",
+        "--resume",
+        &s(&run),
+        "--set",
+        "total_updates=4",
+    ]));
+    assert!(run.join("checkpoints/step_4").is_dir());
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -320,6 +320,7 @@ mod tests {
             command: "test".into(),
             seed_torch: false,
             in_distribution: false,
+            force: false,
         }
     }
 

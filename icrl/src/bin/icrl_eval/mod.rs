@@ -71,11 +71,15 @@ pub struct EvalArgs {
     /// Time limit in agent steps (default: the checkpoint's, else the environment's).
     #[arg(long)]
     max_episode_steps: Option<usize>,
+    /// Replace output files that exist (regular files only; without it they
+    /// are refused before anything is evaluated).
+    #[arg(long)]
+    force: bool,
 }
 
 pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
     if !args.from.is_empty() {
-        let out = command::replot(&args.from, &args.out)?;
+        let out = command::replot(&args.from, &args.out, args.force)?;
         for line in &out.lines {
             println!("{line}");
         }
@@ -109,6 +113,7 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
         in_distribution: args.in_distribution,
         seed_torch: true,
         command: std::env::args().collect::<Vec<_>>().join(" "),
+        force: args.force,
     };
     // Bad options and an unwritable output folder fail before any loading.
     if !args.label.is_empty() && args.label.len() != args.checkpoint.len() {
