@@ -118,8 +118,8 @@ fn dataset_never_replaces_what_is_not_ours() {
 }
 
 /// A tiny darkroom EPPO run (2 updates) pretrained on budgets [2, 4];
-/// returns its run folder.
-fn tiny_eppo_run(out: &Path) -> PathBuf {
+/// returns its run folder and what it printed.
+fn tiny_eppo_run(out: &Path) -> (PathBuf, String) {
     let mut args = vec![
         "pretrain",
         "--env",
@@ -152,7 +152,7 @@ fn tiny_eppo_run(out: &Path) -> PathBuf {
     ] {
         args.extend(["--set", set]);
     }
-    succeeded(&icrl(&args));
+    let stdout = succeeded(&icrl(&args));
     let run = std::fs::read_dir(out)
         .unwrap()
         .next()
@@ -160,7 +160,7 @@ fn tiny_eppo_run(out: &Path) -> PathBuf {
         .unwrap()
         .path();
     assert!(run.join("checkpoints/step_2").is_dir(), "{}", run.display());
-    run
+    (run, stdout)
 }
 
 /// `eval` of `checkpoints` (none: the random policy alone), tiny.
@@ -195,7 +195,7 @@ fn eval(checkpoints: &[&Path], out: &Path, extra: &[&str]) -> Output {
 #[test]
 fn eval_outputs_conditions_and_reports_are_checked() {
     let dir = tmp("eval");
-    let run = tiny_eppo_run(&dir.join("runs"));
+    let (run, _) = tiny_eppo_run(&dir.join("runs"));
     let out = dir.join("eval");
     // Bad 8: the random policy is judged against the agent's budgets.
     succeeded(&eval(&[&run], &out, &[]));
@@ -277,7 +277,7 @@ fn eval_outputs_conditions_and_reports_are_checked() {
 #[test]
 fn a_run_held_by_another_process_is_refused_with_its_pid() {
     let dir = tmp("lock");
-    let run = tiny_eppo_run(&dir.join("runs"));
+    let (run, _) = tiny_eppo_run(&dir.join("runs"));
     // Another process holds the run (this test, through the same OS lock).
     let lock = std::fs::OpenOptions::new()
         .read(true)
@@ -318,5 +318,50 @@ fn a_run_held_by_another_process_is_refused_with_its_pid() {
         "total_updates=4",
     ]));
     assert!(run.join("checkpoints/step_4").is_dir());
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn the_printed_eval_command_works_as_printed() {
+    // A path with a space: the command must be quoted to survive pasting.
+    let dir = tmp("printed");
+    let (run, stdout) = tiny_eppo_run(&dir.join("my runs"));
+    let line = stdout
+        .lines()
+        .skip_while(|l| !l.starts_with("evaluate it with:"))
+        .nth(1)
+        .unwrap_or_else(|| panic!("no eval command: {stdout}"));
+    let words = shlex::split(line.trim()).unwrap_or_else(|| panic!("not shell words: {line}"));
+    assert_eq!(words[..3], ["cargo", "xtask", "eval"], "{line}");
+    let ck = words.iter().position(|w| w == "--checkpoint").unwrap();
+    assert!(Path::new(&words[ck + 1]).starts_with(&run), "{line}");
+    // `cargo xtask eval` passes its arguments to `icrl eval`: run them, on a
+    // tiny task set, into a temporary folder.
+    let mut args: Vec<String> = vec!["eval".into()];
+    let mut rest = words[3..].iter();
+    while let Some(w) = rest.next() {
+        if w == "--out" {
+            rest.next();
+        } else {
+            args.push(w.clone());
+        }
+    }
+    let out = s(&dir.join("eval"));
+    for a in [
+        "--tasks",
+        "1",
+        "--episodes",
+        "2",
+        "--n-budgets",
+        "1",
+        "--threads",
+        "1",
+        "--out",
+        &out,
+    ] {
+        args.push(a.into());
+    }
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    succeeded(&icrl(&args));
     std::fs::remove_dir_all(&dir).unwrap();
 }

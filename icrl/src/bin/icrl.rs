@@ -291,7 +291,7 @@ fn resume_command(env: &str, method: &str, checkpoint: &std::path::Path) -> Stri
         .unwrap_or(checkpoint);
     format!(
         "icrl pretrain --env {env} --method {method} --resume {}",
-        run.display()
+        icrl::run_summary::shell_word(run)
     )
 }
 

@@ -670,7 +670,7 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
     }
     if agents.is_empty() && !opts.random {
         return Err(EvalCmdError::Options(
-            "nothing to evaluate: give --checkpoint DIR and/or --random".into(),
+            "nothing to evaluate: give --checkpoint DIR, or leave out --no-random to evaluate the random policy".into(),
         ));
     }
     let probe = make_env(
