@@ -414,6 +414,22 @@ impl RunDir {
         Ok(())
     }
 
+    /// Removes a run folder that a refused or failed start left without a
+    /// checkpoint: only the files a run writes (`.lock`, `config.toml`,
+    /// `spec.json`, `metrics.jsonl`, the empty `checkpoints/`), then the
+    /// folder if that emptied it. A run with any checkpoint is kept.
+    pub fn remove_if_unused(&self) {
+        let ck = self.path.join("checkpoints");
+        if fs::read_dir(&ck).map_or(true, |mut d| d.next().is_some()) {
+            return;
+        }
+        for f in [".lock", "config.toml", "spec.json", "metrics.jsonl"] {
+            let _ = fs::remove_file(self.path.join(f));
+        }
+        let _ = fs::remove_dir(&ck);
+        let _ = fs::remove_dir(&self.path);
+    }
+
     /// Resolves `--resume PATH`: a run folder (its latest checkpoint) or one
     /// `checkpoints/step_N` folder. Returns the run and the checkpoint folder.
     pub fn resolve_resume(path: &Path) -> Result<(Self, PathBuf), CheckpointError> {

@@ -365,3 +365,77 @@ fn the_printed_eval_command_works_as_printed() {
     succeeded(&icrl(&args));
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// Fails unless clap refused the arguments (exit 2) with `want`.
+fn usage_error(out: &Output, want: &str) {
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "a usage error: {err}");
+    assert!(err.contains(want), "expected {want:?} in: {err}");
+}
+
+#[test]
+fn negative_numbers_are_named_not_read_as_flags() {
+    let dir = tmp("negative");
+    let h5 = s(&dir.join("h.h5"));
+    let not_a_count = "\"-1\" is not a count";
+    let d = |flag: &str, v: &str| icrl(&["dataset", "--env", "darkroom", "--out", &h5, flag, v]);
+    usage_error(&d("--tasks", "-1"), not_a_count);
+    usage_error(&d("--steps", "-1"), not_a_count);
+    refused(
+        &d("--cost-limits", "-1"),
+        "cost limit -1 must be finite and non-negative",
+    );
+    let e = |flag: &str| icrl(&["eval", "--env", "darkroom", flag, "-1"]);
+    usage_error(&e("--episodes"), not_a_count);
+    usage_error(&e("--tasks"), not_a_count);
+    usage_error(&e("--n-budgets"), not_a_count);
+    refused(&e("--rtg"), "--rtg -1: must be in [0, 10000]");
+    usage_error(
+        &icrl(&["plot-training", &s(&dir), "--window", "-1"]),
+        not_a_count,
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn refused_runs_and_evals_leave_no_empty_folders() {
+    let dir = tmp("leftovers");
+    let out = dir.join("eval");
+    refused(
+        &icrl(&[
+            "eval",
+            "--env",
+            "darkroom",
+            "--checkpoint",
+            &s(&dir.join("none")),
+            "--out",
+            &s(&out),
+        ]),
+        "none",
+    );
+    assert!(!out.exists(), "no empty --out folder");
+    let h5 = dir.join("h.h5");
+    succeeded(&dataset(&s(&h5), &[]));
+    let runs = dir.join("runs");
+    refused(
+        &icrl(&[
+            "pretrain",
+            "--env",
+            "darkroom",
+            "--method",
+            "ad",
+            "--dataset",
+            &s(&h5),
+            "--out",
+            &s(&runs),
+            "--set",
+            "batch_size=1000000000",
+        ]),
+        "needs about",
+    );
+    let left: Vec<_> = std::fs::read_dir(&runs)
+        .map(|d| d.map(|e| e.unwrap().path()).collect())
+        .unwrap_or_default();
+    assert!(left.is_empty(), "no empty run folder: {left:?}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

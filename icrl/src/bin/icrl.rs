@@ -29,7 +29,7 @@ enum Command {
         /// The run folder.
         run: PathBuf,
         /// Moving-average window, in metric records.
-        #[arg(long, default_value_t = 10)]
+        #[arg(long, default_value_t = 10, allow_hyphen_values = true, value_parser = parse_count)]
         window: usize,
     },
     /// Make learning histories (PPO-Lagrangian or AD-eps) for supervised pretraining, as HDF5.
@@ -62,19 +62,19 @@ struct DatasetArgs {
     #[arg(long)]
     out: PathBuf,
     /// Pretraining tasks (centre-oriented).
-    #[arg(long, default_value_t = 10)]
+    #[arg(long, default_value_t = 10, allow_hyphen_values = true, value_parser = parse_count)]
     tasks: usize,
     /// Environment steps per history (paper: 50000).
-    #[arg(long, default_value_t = 50_000)]
+    #[arg(long, default_value_t = 50_000, allow_hyphen_values = true, value_parser = parse_count)]
     steps: usize,
     /// Cost limits, one history per task and limit (default: 0,2.5,5 SafeDarkRoom; 0,5,10 Point and Car).
-    #[arg(long, value_delimiter = ',')]
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     cost_limits: Option<Vec<f32>>,
     /// Master seed.
     #[arg(long, default_value_t = 0, allow_hyphen_values = true, value_parser = parse_seed)]
     seed: u64,
     /// Worker threads (default: all cores).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true, value_parser = parse_count)]
     threads: Option<usize>,
     /// Which learner makes the histories.
     #[arg(long, default_value = "ppo-lagrangian", value_parser = ["ppo-lagrangian", "noisy-optimal"])]
@@ -82,18 +82,31 @@ struct DatasetArgs {
     /// Point and Car: MuJoCo physics steps per agent action, the macro action
     /// (default 50 = 5 Safety-Gymnasium steps x 10 physics steps each);
     /// recorded in the file.
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", allow_hyphen_values = true, value_parser = parse_count)]
     physics_steps_per_action: Option<usize>,
     /// Keep N episodes of each learning run, spaced evenly in the logarithm of
     /// the episode index, so that a history spans the early, middle and
     /// expert phases of learning (default: keep every episode). Recorded in
     /// the file's config.
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", allow_hyphen_values = true, value_parser = parse_count)]
     keep_episodes: Option<usize>,
     /// Replace an existing history file at --out (never a device, link,
     /// folder or checkpoint file).
     #[arg(long)]
     force: bool,
+}
+
+/// A count (tasks, steps, episodes, threads, ...): a whole number from 0 up.
+/// Read with `allow_hyphen_values`, so `-1` is named as a bad count rather
+/// than "unexpected argument '-1'"; zero is refused where it matters by the
+/// command's own checks.
+fn parse_count(s: &str) -> Result<usize, String> {
+    s.trim().parse::<usize>().map_err(|_| {
+        format!(
+            "{s:?} is not a count: counts are whole numbers from 0 to {}",
+            usize::MAX
+        )
+    })
 }
 
 /// A seed: a whole number from 0 to 2^64 - 1 (clap would call `-1` an

@@ -156,7 +156,7 @@ pub fn ad(
             m.seconds
         )
     };
-    let summary = ad::train(
+    let result = ad::train(
         &req,
         &mut |m| {
             if hidden {
@@ -166,7 +166,15 @@ pub fn ad(
             }
         },
         &mut |u| bar.set_position(u as u64),
-    )?;
+    );
+    if result.is_err() && resume.is_none() {
+        // A refused start leaves no empty run folder behind.
+        RunDir {
+            path: run_dir.clone(),
+        }
+        .remove_if_unused();
+    }
+    let summary = result?;
     bar.finish();
     Ok(summary)
 }
