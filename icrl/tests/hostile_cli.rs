@@ -307,16 +307,31 @@ fn a_run_held_by_another_process_is_refused_with_its_pid() {
         before
     );
     drop(lock);
+    // The resume rule: listed changes are printed, others refused.
+    let resume = |extra: &[&str]| {
+        let mut args = vec!["pretrain", "--env", "darkroom", "--resume"];
+        let r = s(&run);
+        args.push(&r);
+        args.extend(extra);
+        icrl(&args)
+    };
+    refused(
+        &resume(&["--set", "lr=0.01"]),
+        "these settings differ from its config.toml: lr:",
+    );
+    refused(
+        &resume(&["--seed", "5", "--set", "total_updates=4"]),
+        "seed: ",
+    );
+    refused(
+        &resume(&["--set", "total_updates=1"]),
+        "it has done 2 updates and total_updates is 1, so nothing would be trained; pass --set total_updates=3",
+    );
     // Released (as when its process dies): the resume goes ahead.
-    succeeded(&icrl(&[
-        "pretrain",
-        "--env",
-        "darkroom",
-        "--resume",
-        &s(&run),
-        "--set",
-        "total_updates=4",
-    ]));
+    let o = resume(&["--set", "total_updates=4"]);
+    succeeded(&o);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("with total_updates: 2 -> 4"), "{err}");
     assert!(run.join("checkpoints/step_4").is_dir());
     std::fs::remove_dir_all(&dir).unwrap();
 }
