@@ -336,6 +336,20 @@ impl RunDir {
     /// [`RunDir::create`] with the base name given.
     pub fn create_named(root: &Path, base: &str) -> Result<Self, CheckpointError> {
         refuse_nesting(root)?;
+        // `--out` at a file, a device or a symlink loop: say so, not EEXIST.
+        if let Ok(m) = fs::symlink_metadata(root)
+            && !root.is_dir()
+        {
+            return Err(CheckpointError::Invalid {
+                path: root.to_path_buf(),
+                problem: if m.file_type().is_symlink() {
+                    "a symbolic link that does not lead to a folder".into()
+                } else {
+                    "not a folder (a file or a device is there)".into()
+                },
+                fix: "pass a folder for --out (it is created if missing)".into(),
+            });
+        }
         fs::create_dir_all(root).map_err(io(root))?;
         for n in 1..10_000u32 {
             let name = if n == 1 {
@@ -957,6 +971,16 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("lies inside the checkpoint"), "{e}");
+        let e = RunDir::create(&first.join("model.bin"), "darkroom", "test", 2)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("lies inside the checkpoint"), "{e}");
+        let file = root.join("a-file");
+        fs::write(&file, "x").unwrap();
+        let e = RunDir::create(&file, "darkroom", "test", 2)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("not a folder") && e.contains("--out"), "{e}");
         let e = RunDir::create(&run.path.join("sub"), "darkroom", "test", 2)
             .unwrap_err()
             .to_string();

@@ -97,9 +97,17 @@ fn dataset_never_replaces_what_is_not_ours() {
         &dataset(&s(&afile.join("x.h5")), &[]),
         "is a file, not a folder",
     );
+    refused(
+        &icrl(&["pretrain", "--env", "darkroom", "--out", &s(&afile)]),
+        "not a folder (a file or a device is there)",
+    );
     // An existing dataset: refused without --force, replaced with it.
     let h5 = dir.join("h.h5");
-    succeeded(&dataset(&s(&h5), &[]));
+    let summary = succeeded(&dataset(&s(&h5), &[]));
+    assert!(
+        !summary.contains("log-spaced"),
+        "no --keep-episodes: {summary}"
+    );
     let first = std::fs::read(&h5).unwrap();
     refused(
         &dataset(&s(&h5), &["--seed", "1"]),

@@ -128,6 +128,7 @@ fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
     let threads = args
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let keep_episodes = args.keep_episodes;
     let r = icrl::cli::dataset::dataset_command(&icrl::cli::dataset::DatasetCommand {
         env: args.env,
         out: args.out,
@@ -153,7 +154,8 @@ fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
         r.bytes as f64 / 1e6,
         r.seconds,
         r.steps_taken as f64 / r.seconds,
-        if r.steps < r.steps_taken {
+        // Only with --keep-episodes were episodes subsampled.
+        if keep_episodes.is_some() && r.steps < r.steps_taken {
             format!(", {} steps taken, episodes kept log-spaced", r.steps_taken)
         } else {
             String::new()
