@@ -464,9 +464,43 @@ impl RunDir {
             .ok_or_else(|| CheckpointError::Invalid {
                 path: run.path.join("checkpoints"),
                 problem: "no checkpoint has been written yet".into(),
-                fix: "start a new run without --resume".into(),
+                fix: "there is nothing to resume or evaluate: let the run reach its first \
+                      checkpoint (checkpoint_every), or start a new run"
+                    .into(),
             })?;
         Ok((run, ckpt))
+    }
+
+    /// Refuses `--resume` of a checkpoint of another method or environment
+    /// before its config is read, naming the flags that resume it (the
+    /// manifest's `method` and `env`; its checksums are verified later).
+    pub fn check_resume_flags(
+        checkpoint: &Path,
+        method: &str,
+        env: &str,
+    ) -> Result<(), CheckpointError> {
+        let Some(m) = fs::read_to_string(checkpoint.join(MANIFEST))
+            .ok()
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        else {
+            return Ok(());
+        };
+        let (Some(found_method), Some(found_env)) = (m["method"].as_str(), m["env"].as_str())
+        else {
+            return Ok(());
+        };
+        if found_method != method || found_env != env {
+            return Err(CheckpointError::Invalid {
+                path: checkpoint.to_path_buf(),
+                problem: format!(
+                    "this is a {found_env} {} run, not {env} {}",
+                    found_method.to_uppercase(),
+                    method.to_uppercase()
+                ),
+                fix: format!("resume it with --env {found_env} --method {found_method}"),
+            });
+        }
+        Ok(())
     }
 
     /// `config.toml` of the run.

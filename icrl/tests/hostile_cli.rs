@@ -315,6 +315,22 @@ fn a_run_held_by_another_process_is_refused_with_its_pid() {
         before
     );
     drop(lock);
+    // The other environment or method: named, with the flags that resume it.
+    let r = s(&run);
+    refused(
+        &icrl(&["pretrain", "--env", "point", "--resume", &r]),
+        "this is a darkroom EPPO run, not point EPPO; resume it with --env darkroom --method eppo",
+    );
+    refused(
+        &icrl(&[
+            "pretrain", "--env", "darkroom", "--method", "ad", "--resume", &r,
+        ]),
+        "this is a darkroom EPPO run, not darkroom AD",
+    );
+    refused(
+        &icrl(&["pretrain", "--env", "darkroom", "--dataset", "h.h5"]),
+        "--dataset h.h5 is for --method ad",
+    );
     // The resume rule: listed changes are printed, others refused.
     let resume = |extra: &[&str]| {
         let mut args = vec!["pretrain", "--env", "darkroom", "--resume"];
@@ -455,6 +471,22 @@ fn refused_runs_and_evals_leave_no_empty_folders() {
             "batch_size=1000000000",
         ]),
         "needs about",
+    );
+    refused(
+        &icrl(&[
+            "pretrain",
+            "--env",
+            "darkroom",
+            "--method",
+            "ad",
+            "--dataset",
+            &s(&h5),
+            "--out",
+            &s(&runs),
+            "--set",
+            "model.max_len=1",
+        ]),
+        "model.max_len = 1: must be at least 2",
     );
     let left: Vec<_> = std::fs::read_dir(&runs)
         .map(|d| d.map(|e| e.unwrap().path()).collect())

@@ -234,6 +234,13 @@ fn pretrain(args: PretrainArgs) -> anyhow::Result<()> {
     if args.method == "ad" {
         return pretrain_ad(args);
     }
+    if let Some(d) = &args.dataset {
+        anyhow::bail!(
+            "--dataset {} is for --method ad: EPPO collects its own experience (leave out --dataset, \
+             or add --method ad)",
+            d.display()
+        );
+    }
     let mut sets = args.set;
     if let Some(seed) = args.seed {
         sets.push(format!("seed={seed}"));

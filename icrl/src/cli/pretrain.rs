@@ -27,7 +27,8 @@ pub fn eppo(
     let cfg_err = |e: crate::presets::PresetError| EppoError::Config(e.to_string());
     let (name, mut table) = match resume {
         Some(path) => {
-            let (run, _) = RunDir::resolve_resume(path)?;
+            let (run, ckpt) = RunDir::resolve_resume(path)?;
+            RunDir::check_resume_flags(&ckpt, "eppo", env)?;
             let p = run.config_path();
             let text = std::fs::read_to_string(&p).map_err(|e| CheckpointError::Io {
                 path: p.clone(),
@@ -183,7 +184,9 @@ pub fn ad(
                     path.display()
                 )));
             }
-            Some(RunDir::resolve_resume(path)?)
+            let (run, ckpt) = RunDir::resolve_resume(path)?;
+            RunDir::check_resume_flags(&ckpt, "ad", env)?;
+            Some((run, ckpt))
         }
         None => None,
     };
