@@ -351,11 +351,18 @@ fn a_run_held_by_another_process_is_refused_with_its_pid() {
         &resume(&["--set", "total_updates=1"]),
         "it has done 2 updates and total_updates is 1, so nothing would be trained; pass --set total_updates=3",
     );
-    // Released (as when its process dies): the resume goes ahead.
+    // Released (as when its process dies): the resume goes ahead, even
+    // with config.toml lost (the checkpoint's copy is used and written back).
+    std::fs::remove_file(run.join("config.toml")).unwrap();
     let o = resume(&["--set", "total_updates=4"]);
     succeeded(&o);
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("with total_updates: 2 -> 4"), "{err}");
+    assert!(
+        err.contains("config.toml is missing: resuming with the copy in"),
+        "{err}"
+    );
+    assert!(run.join("config.toml").is_file(), "written back");
     assert!(run.join("checkpoints/step_4").is_dir());
     std::fs::remove_dir_all(&dir).unwrap();
 }

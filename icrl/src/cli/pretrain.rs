@@ -29,7 +29,17 @@ pub fn eppo(
         Some(path) => {
             let (run, ckpt) = RunDir::resolve_resume(path)?;
             RunDir::check_resume_flags(&ckpt, "eppo", env)?;
-            let p = run.config_path();
+            let mut p = run.config_path();
+            // A lost config.toml: every EPPO checkpoint holds its own copy
+            // (training writes it back to the run folder).
+            if !p.exists() && ckpt.join("config.toml").is_file() {
+                eprintln!(
+                    "{} is missing: resuming with the copy in {}",
+                    p.display(),
+                    ckpt.display()
+                );
+                p = ckpt.join("config.toml");
+            }
             let text = std::fs::read_to_string(&p).map_err(|e| CheckpointError::Io {
                 path: p.clone(),
                 source: e,
