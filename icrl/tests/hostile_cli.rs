@@ -440,6 +440,13 @@ fn negative_numbers_are_named_not_read_as_flags() {
         &icrl(&["plot-training", &s(&dir), "--window", "-1"]),
         not_a_count,
     );
+    // plot-training of a garbage metrics.jsonl: refused, no empty figure.
+    std::fs::write(dir.join("metrics.jsonl"), "garbage\n{\"x\": 1}\n").unwrap();
+    refused(
+        &icrl(&["plot-training", &s(&dir)]),
+        "no metric records (2 lines, none a JSON object with env_steps)",
+    );
+    assert!(!dir.join("learning_curve.png").exists());
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

@@ -27,6 +27,18 @@ pub fn plot_learning_curve(run_dir: &Path, window: usize) -> Result<PathBuf, Plo
         .lines()
         .filter_map(|l| serde_json::from_str(l).ok())
         .collect();
+    // Garbage (or an empty file) would draw empty axes: say so instead.
+    if !records
+        .iter()
+        .any(|r| r.get("env_steps").is_some_and(|x| x.is_number()))
+    {
+        return Err(PlotError::Empty(format!(
+            "{}: no metric records ({} lines, none a JSON object with env_steps); is this a run \
+             folder written by icrl pretrain?",
+            path.display(),
+            text.lines().count()
+        )));
+    }
     let smooth = |key: &str| -> Vec<(f64, f64)> {
         let xs: Vec<(f64, f64)> = records
             .iter()
