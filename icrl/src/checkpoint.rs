@@ -25,6 +25,7 @@ use std::fs;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
+use safety_envs::output::Lock;
 use safety_envs::{EnvName, OLD_PHYSICS_STEPS_PER_ACTION, PHYSICS_STEPS_PER_ACTION};
 use serde::{Deserialize, Serialize};
 use sha2::{Digest, Sha256};
@@ -334,6 +335,21 @@ impl RunDir {
 
     /// [`RunDir::create`] with the base name given.
     pub fn create_named(root: &Path, base: &str) -> Result<Self, CheckpointError> {
+        refuse_nesting(root)?;
+        // `--out` at a file, a device or a symlink loop: say so, not EEXIST.
+        if let Ok(m) = fs::symlink_metadata(root)
+            && !root.is_dir()
+        {
+            return Err(CheckpointError::Invalid {
+                path: root.to_path_buf(),
+                problem: if m.file_type().is_symlink() {
+                    "a symbolic link that does not lead to a folder".into()
+                } else {
+                    "not a folder (a file or a device is there)".into()
+                },
+                fix: "pass a folder for --out (it is created if missing)".into(),
+            });
+        }
         fs::create_dir_all(root).map_err(io(root))?;
         for n in 1..10_000u32 {
             let name = if n == 1 {
@@ -374,6 +390,60 @@ impl RunDir {
         })
     }
 
+    /// Takes the run's lock (`RUN/.lock`, an OS file lock the kernel
+    /// releases when the process dies): a second process training, resuming
+    /// or extending the same run is refused with the first's pid. Hold the
+    /// returned lock for as long as the run is written.
+    pub fn lock(&self) -> Result<Lock, CheckpointError> {
+        Lock::acquire(
+            &self.path.join(".lock"),
+            &format!("the run {}", self.path.display()),
+            false,
+        )
+        .map_err(|e| CheckpointError::Invalid {
+            path: e.path,
+            problem: e.problem,
+            fix: "one process per run".into(),
+        })
+    }
+
+    /// Fails, naming what is gone, when the run folder or its
+    /// `checkpoints/` folder disappeared (deleted or moved while the run
+    /// was training): the run stops instead of writing into a new, partial
+    /// folder.
+    pub fn check_present(&self) -> Result<(), CheckpointError> {
+        for (what, path) in [
+            ("the run folder", self.path.clone()),
+            ("its checkpoints/ folder", self.path.join("checkpoints")),
+        ] {
+            if fs::symlink_metadata(&path).is_err() {
+                return Err(CheckpointError::Invalid {
+                    path,
+                    problem: format!("{what} is gone (deleted or moved while the run was training)"),
+                    fix: "training stopped; restore the folder from a copy and resume it, or start a new run"
+                        .into(),
+                });
+            }
+        }
+        Ok(())
+    }
+
+    /// Removes a run folder that a refused or failed start left without a
+    /// checkpoint: only the files a run writes (`.lock`, `config.toml`,
+    /// `spec.json`, `metrics.jsonl`, the empty `checkpoints/`), then the
+    /// folder if that emptied it. A run with any checkpoint is kept.
+    pub fn remove_if_unused(&self) {
+        let ck = self.path.join("checkpoints");
+        if fs::read_dir(&ck).map_or(true, |mut d| d.next().is_some()) {
+            return;
+        }
+        for f in [".lock", "config.toml", "spec.json", "metrics.jsonl"] {
+            let _ = fs::remove_file(self.path.join(f));
+        }
+        let _ = fs::remove_dir(&ck);
+        let _ = fs::remove_dir(&self.path);
+    }
+
     /// Resolves `--resume PATH`: a run folder (its latest checkpoint) or one
     /// `checkpoints/step_N` folder. Returns the run and the checkpoint folder.
     pub fn resolve_resume(path: &Path) -> Result<(Self, PathBuf), CheckpointError> {
@@ -394,9 +464,43 @@ impl RunDir {
             .ok_or_else(|| CheckpointError::Invalid {
                 path: run.path.join("checkpoints"),
                 problem: "no checkpoint has been written yet".into(),
-                fix: "start a new run without --resume".into(),
+                fix: "there is nothing to resume or evaluate: let the run reach its first \
+                      checkpoint (checkpoint_every), or start a new run"
+                    .into(),
             })?;
         Ok((run, ckpt))
+    }
+
+    /// Refuses `--resume` of a checkpoint of another method or environment
+    /// before its config is read, naming the flags that resume it (the
+    /// manifest's `method` and `env`; its checksums are verified later).
+    pub fn check_resume_flags(
+        checkpoint: &Path,
+        method: &str,
+        env: &str,
+    ) -> Result<(), CheckpointError> {
+        let Some(m) = fs::read_to_string(checkpoint.join(MANIFEST))
+            .ok()
+            .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        else {
+            return Ok(());
+        };
+        let (Some(found_method), Some(found_env)) = (m["method"].as_str(), m["env"].as_str())
+        else {
+            return Ok(());
+        };
+        if found_method != method || found_env != env {
+            return Err(CheckpointError::Invalid {
+                path: checkpoint.to_path_buf(),
+                problem: format!(
+                    "this is a {found_env} {} run, not {env} {}",
+                    found_method.to_uppercase(),
+                    method.to_uppercase()
+                ),
+                fix: format!("resume it with --env {found_env} --method {found_method}"),
+            });
+        }
+        Ok(())
     }
 
     /// `config.toml` of the run.
@@ -447,13 +551,15 @@ impl RunDir {
         keep: usize,
         write: impl FnOnce(&Path) -> Result<(), CheckpointError>,
     ) -> Result<PathBuf, CheckpointError> {
+        self.check_present()?;
         let root = self.path.join("checkpoints");
         let tmp = root.join(format!(".tmp_step_{updates}"));
         let dest = root.join(format!("step_{updates}"));
         if tmp.exists() {
             fs::remove_dir_all(&tmp).map_err(io(&tmp))?;
         }
-        fs::create_dir_all(&tmp).map_err(io(&tmp))?;
+        // Not create_dir_all: a run folder deleted meanwhile is not remade.
+        fs::create_dir(&tmp).map_err(io(&tmp))?;
         write(&tmp)?;
         let mut files = BTreeMap::new();
         let mut sha256 = BTreeMap::new();
@@ -485,7 +591,7 @@ impl RunDir {
         f.write_all(text.as_bytes()).map_err(io(&mpath))?;
         f.sync_all().map_err(io(&mpath))?;
         if dest.exists() {
-            fs::remove_dir_all(&dest).map_err(io(&dest))?;
+            remove_checkpoint(&dest)?;
         }
         fs::rename(&tmp, &dest).map_err(io(&dest))?;
         self.prune(keep)?;
@@ -512,10 +618,80 @@ impl RunDir {
         steps.sort();
         let excess = steps.len().saturating_sub(keep);
         for (_, p) in steps.into_iter().take(excess) {
-            fs::remove_dir_all(&p).map_err(io(&p))?;
+            remove_checkpoint(&p)?;
         }
         Ok(())
     }
+}
+
+/// Removes one checkpoint: only the files its manifest lists and the
+/// manifest, then the folder if that left it empty. A `step_N` folder
+/// without a readable manifest is not a checkpoint and is left alone, and
+/// so is anything else in it (a user's notes, a nested folder), with a
+/// warning naming what was kept.
+fn remove_checkpoint(dir: &Path) -> Result<(), CheckpointError> {
+    let manifest = fs::read_to_string(dir.join(MANIFEST))
+        .ok()
+        .and_then(|t| serde_json::from_str::<Manifest>(&t).ok());
+    let Some(manifest) = manifest else {
+        eprintln!(
+            "warning: {} has no readable {MANIFEST}: not a checkpoint, so it was not removed",
+            dir.display()
+        );
+        return Ok(());
+    };
+    for name in manifest.files.keys() {
+        // Manifest names are plain file names; anything else is not ours.
+        if Path::new(name).components().count() != 1 {
+            continue;
+        }
+        let p = dir.join(name);
+        if fs::symlink_metadata(&p).is_ok_and(|m| m.is_file()) {
+            fs::remove_file(&p).map_err(io(&p))?;
+        }
+    }
+    let m = dir.join(MANIFEST);
+    fs::remove_file(&m).map_err(io(&m))?;
+    if fs::remove_dir(dir).is_err() {
+        eprintln!(
+            "warning: {} holds files that are not part of the checkpoint: the checkpoint's files were \
+             removed, the rest was kept",
+            dir.display()
+        );
+    }
+    Ok(())
+}
+
+/// Refuses to create runs under `root` when `root` lies inside a run folder
+/// or a checkpoint folder: pruning and resuming the outer run would remove
+/// or mix the inner run's files.
+fn refuse_nesting(root: &Path) -> Result<(), CheckpointError> {
+    let Some(existing) = root
+        .ancestors()
+        .find(|a| !a.as_os_str().is_empty() && a.exists())
+    else {
+        return Ok(());
+    };
+    let Ok(existing) = existing.canonicalize() else {
+        return Ok(());
+    };
+    for a in existing.ancestors() {
+        let is_checkpoint = a.join(MANIFEST).is_file();
+        let is_run = a.join("checkpoints").is_dir()
+            && (a.join("config.toml").is_file() || a.join("spec.json").is_file());
+        if is_checkpoint || is_run {
+            return Err(CheckpointError::Invalid {
+                path: root.to_path_buf(),
+                problem: format!(
+                    "it lies inside the {} {}; a run nested in another would be pruned or mixed with its files",
+                    if is_checkpoint { "checkpoint" } else { "run" },
+                    a.display()
+                ),
+                fix: "pass an --out folder outside every run folder".into(),
+            });
+        }
+    }
+    Ok(())
 }
 
 /// The sentence of a "training stopped" error that names the last good
@@ -583,8 +759,24 @@ impl MetricsWriter {
         })
     }
 
-    /// Writes one record and flushes it.
+    /// Writes one record and flushes it. Fails when `metrics.jsonl` is no
+    /// longer the file opened (deleted or moved with its run folder): the
+    /// records would go nowhere.
     pub fn write(&mut self, record: &serde_json::Value) -> Result<(), CheckpointError> {
+        use std::os::unix::fs::MetadataExt;
+        let same = match (self.file.metadata(), fs::metadata(&self.path)) {
+            (Ok(a), Ok(b)) => a.ino() == b.ino() && a.dev() == b.dev(),
+            _ => false,
+        };
+        if !same {
+            return Err(CheckpointError::Invalid {
+                path: self.path.clone(),
+                problem: "the run's metrics file is gone (its run folder was deleted or moved while training)"
+                    .into(),
+                fix: "training stopped; restore the folder from a copy and resume it, or start a new run"
+                    .into(),
+            });
+        }
         let line = record.to_string();
         writeln!(self.file, "{line}").map_err(io(&self.path))?;
         self.file.flush().map_err(io(&self.path))
@@ -786,5 +978,85 @@ mod tests {
             0
         );
         fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn pruning_removes_only_checkpoint_files_and_runs_do_not_nest() {
+        let root = std::env::temp_dir().join(format!("icrl-ckpt-prune-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&root);
+        let run = RunDir::create(&root, "darkroom", "test", 1).unwrap();
+        run.write_config("x = 1").unwrap();
+        let write = |step: u64| {
+            run.write_checkpoint(
+                step,
+                "test",
+                "darkroom",
+                None,
+                serde_json::json!({}),
+                2,
+                |d| fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d)),
+            )
+            .unwrap()
+        };
+        let first = write(10);
+        // A user's notes in a checkpoint, and a run nested inside one: refused.
+        fs::write(first.join("notes.txt"), "mine").unwrap();
+        let e = RunDir::create(&first, "darkroom", "test", 2)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("lies inside the checkpoint"), "{e}");
+        let e = RunDir::create(&first.join("model.bin"), "darkroom", "test", 2)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("lies inside the checkpoint"), "{e}");
+        let file = root.join("a-file");
+        fs::write(&file, "x").unwrap();
+        let e = RunDir::create(&file, "darkroom", "test", 2)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("not a folder") && e.contains("--out"), "{e}");
+        let e = RunDir::create(&run.path.join("sub"), "darkroom", "test", 2)
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("lies inside the run"), "{e}");
+        // A step_N folder that is no checkpoint.
+        let fake = run.path.join("checkpoints/step_1");
+        fs::create_dir(&fake).unwrap();
+        fs::write(fake.join("data.txt"), "x").unwrap();
+        write(20);
+        write(30);
+        assert_eq!(fs::read_to_string(first.join("notes.txt")).unwrap(), "mine");
+        assert!(!first.join("w.bin").exists() && !first.join(MANIFEST).exists());
+        assert!(fake.join("data.txt").exists(), "not a checkpoint: kept");
+        assert!(run.path.join("checkpoints/step_20").is_dir());
+        fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn a_run_whose_folder_disappears_stops_instead_of_remaking_it() {
+        let root = std::env::temp_dir().join(format!("icrl-ckpt-gone-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&root);
+        let run = RunDir::create(&root, "darkroom", "test", 1).unwrap();
+        run.write_config("x = 1").unwrap();
+        let _lock = run.lock().unwrap();
+        let e = run.lock().unwrap_err().to_string();
+        assert!(e.contains(&format!("pid {}", std::process::id())), "{e}");
+        let mut metrics = MetricsWriter::open(&run.metrics_path()).unwrap();
+        metrics.write(&serde_json::json!({"updates": 1})).unwrap();
+        fs::remove_dir_all(&run.path).unwrap();
+        let e = metrics
+            .write(&serde_json::json!({"updates": 2}))
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("metrics file is gone"), "{e}");
+        let e = run
+            .write_checkpoint(5, "test", "darkroom", None, serde_json::json!({}), 0, |d| {
+                fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d))
+            })
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("the run folder is gone"), "{e}");
+        assert!(!run.path.exists(), "the run folder is not remade");
+        fs::remove_dir_all(&root).unwrap();
     }
 }

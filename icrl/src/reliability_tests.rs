@@ -108,7 +108,9 @@ fn ad_train(
 #[test]
 fn eppo_settings_are_checked_before_anything_runs() {
     let out = tmp("eppo-settings").join("runs");
-    let cases: [(&[&str], &[&str]); 10] = [
+    let cases: [(&[&str], &[&str]); 11] = [
+        // tau = 0: the target networks would never move.
+        (&["tau=0"], &["tau = 0: must be a finite number in (0, 1]"]),
         (
             &["torch_threads=100000"],
             &["torch_threads = 100000: must be in [0, 1024]"],

@@ -183,10 +183,18 @@ impl RecentRounds {
 /// The command that evaluates `checkpoint` on `env` (held-out edge tasks,
 /// Figure 1, with a random policy for scale).
 pub fn eval_command(env: EnvName, checkpoint: &Path) -> String {
+    // The random policy is evaluated beside it by default.
     format!(
-        "cargo xtask eval --checkpoint {} --env {env} --random --out results/eval_{env}",
-        checkpoint.display()
+        "cargo xtask eval --checkpoint {} --env {env} --out results/eval_{env}",
+        shell_word(checkpoint)
     )
+}
+
+/// `path` quoted for a POSIX shell where it needs it (spaces, quotes), so a
+/// printed command works when pasted.
+pub fn shell_word(path: &Path) -> String {
+    let text = path.to_string_lossy();
+    shlex::try_quote(&text).map_or_else(|_| text.to_string(), |q| q.into_owned())
 }
 
 #[cfg(test)]
@@ -265,7 +273,7 @@ mod tests {
         let cmd = eval_command(EnvName::Car, Path::new("runs/x/checkpoints/step_9"));
         assert_eq!(
             cmd,
-            "cargo xtask eval --checkpoint runs/x/checkpoints/step_9 --env car --random --out results/eval_car"
+            "cargo xtask eval --checkpoint runs/x/checkpoints/step_9 --env car --out results/eval_car"
         );
     }
 }

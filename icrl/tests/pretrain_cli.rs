@@ -47,7 +47,7 @@ fn a_tiny_point_run_prints_its_trend_checkpoint_and_eval_command() {
         .unwrap_or_else(|| panic!("no checkpoint line: {stdout}"));
     assert!(
         stdout.contains(&format!(
-            "cargo xtask eval --checkpoint {ckpt_line} --env point --random --out results/eval_point"
+            "cargo xtask eval --checkpoint {ckpt_line} --env point --out results/eval_point"
         )),
         "{stdout}"
     );

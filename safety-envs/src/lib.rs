@@ -7,6 +7,8 @@
 //! - [`nav`]: SafeDarkMujoco Point and Car, the MuJoCo goal tasks.
 //! - [`make`]: environments by name ([`EnvName`], [`make_env`]).
 //! - [`vec_env`]: [`VecEnv`], many environments stepped across threads.
+//! - [`output`]: output files written atomically, never over what is not
+//!   ours, and the run and output locks.
 
 pub mod darkroom;
 pub mod env;
@@ -14,6 +16,7 @@ pub mod error;
 pub mod make;
 pub mod mujoco;
 pub mod nav;
+pub mod output;
 pub mod spawn;
 pub mod vec_env;
 

@@ -143,3 +143,29 @@ fn bad_env_flags_are_clear_errors() {
         "{err}"
     );
 }
+
+#[test]
+fn an_existing_output_is_refused_unless_forced_and_never_a_device() {
+    let out = scratch("twice.png");
+    let o = out.to_str().unwrap();
+    let args = ["--env", "darkroom", "--out", o];
+    assert!(render(&args).status.success());
+    let again = render(&args);
+    let err = String::from_utf8_lossy(&again.stderr);
+    assert!(
+        !again.status.success() && err.contains("exists already: pass --force"),
+        "{err}"
+    );
+    assert!(
+        render(&["--env", "darkroom", "--out", o, "--force"])
+            .status
+            .success()
+    );
+    let dev = render(&["--env", "darkroom", "--out", "/dev/null", "--force"]);
+    let err = String::from_utf8_lossy(&dev.stderr);
+    assert!(
+        !dev.status.success() && err.contains("it is a device"),
+        "{err}"
+    );
+    std::fs::remove_file(&out).unwrap();
+}

@@ -279,12 +279,21 @@ impl InContextAgent for AdAgent {
             AdError::Torch(t) => AgentError::Torch(t),
             other => AgentError::Input(other.to_string()),
         })?;
+        // Conditioning far outside the training data (an RTG of 1e30) can
+        // overflow the model: say so instead of sampling from NaN.
+        if !bool::try_from(out.isfinite().all())? {
+            return Err(AgentError::Input(format!(
+                "the model's outputs are NaN or infinite for the conditioning (RTG, CTG) {:?}: \
+                 condition on values like those of its training data",
+                self.targets.first().copied().unwrap_or_default()
+            )));
+        }
         if self.spec.discrete {
             let idx = if greedy {
                 out.argmax(-1, false)
             } else {
-                out.softmax(-1, Kind::Float)
-                    .multinomial(1, true)
+                out.f_softmax(-1, Kind::Float)?
+                    .f_multinomial(1, true)?
                     .squeeze_dim(1)
             };
             let v: Vec<i64> = Vec::try_from(idx.to_device(Device::Cpu))?;

@@ -171,6 +171,13 @@ impl AdConfig {
             ("episode_stride_max", self.episode_stride_max as i128),
         ])
         .map_err(AdError::Config)?;
+        if self.model.max_len < 2 {
+            return Err(AdError::Config(format!(
+                "model.max_len = {}: must be at least 2 (a context of one step holds no history \
+                 to learn from in context)",
+                self.model.max_len
+            )));
+        }
         crate::guard::check_torch_threads(self.torch_threads).map_err(AdError::Config)?;
         check_numbers(&[
             ("learning_rate", self.learning_rate, Range::UNIT_OPEN_LOW),

@@ -205,6 +205,8 @@ pub fn train(
     let run = RunDir {
         path: dir.to_path_buf(),
     };
+    // One process per run folder until training returns.
+    let _lock = run.lock()?;
 
     let (train_h, val_h) = split_histories(&req.data.histories, cfg);
     let train_set = TokenSet::new(&spec, cfg, &train_h);

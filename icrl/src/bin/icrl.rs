@@ -29,7 +29,7 @@ enum Command {
         /// The run folder.
         run: PathBuf,
         /// Moving-average window, in metric records.
-        #[arg(long, default_value_t = 10)]
+        #[arg(long, default_value_t = 10, allow_hyphen_values = true, value_parser = parse_count)]
         window: usize,
     },
     /// Make learning histories (PPO-Lagrangian or AD-eps) for supervised pretraining, as HDF5.
@@ -44,6 +44,9 @@ enum Command {
         /// Bins of learning progress (at least 1).
         #[arg(long, default_value_t = 20, value_parser = clap::value_parser!(u32).range(1..=100_000))]
         bins: u32,
+        /// Replace existing STEM.png and STEM.svg.
+        #[arg(long)]
+        force: bool,
     },
     /// Evaluate checkpoints in context on held-out edge-oriented tasks: JSON, CSV, figures.
     Eval(icrl_eval::EvalArgs),
@@ -54,23 +57,24 @@ struct DatasetArgs {
     /// Environment.
     #[arg(long, value_parser = ["darkroom", "point", "car"])]
     env: String,
-    /// Output HDF5 file (written to `<out>.tmp`, then renamed).
+    /// Output HDF5 file (written beside it, then renamed); an existing file is
+    /// refused unless --force.
     #[arg(long)]
     out: PathBuf,
     /// Pretraining tasks (centre-oriented).
-    #[arg(long, default_value_t = 10)]
+    #[arg(long, default_value_t = 10, allow_hyphen_values = true, value_parser = parse_count)]
     tasks: usize,
     /// Environment steps per history (paper: 50000).
-    #[arg(long, default_value_t = 50_000)]
+    #[arg(long, default_value_t = 50_000, allow_hyphen_values = true, value_parser = parse_count)]
     steps: usize,
     /// Cost limits, one history per task and limit (default: 0,2.5,5 SafeDarkRoom; 0,5,10 Point and Car).
-    #[arg(long, value_delimiter = ',')]
+    #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     cost_limits: Option<Vec<f32>>,
     /// Master seed.
     #[arg(long, default_value_t = 0, allow_hyphen_values = true, value_parser = parse_seed)]
     seed: u64,
     /// Worker threads (default: all cores).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true, value_parser = parse_count)]
     threads: Option<usize>,
     /// Which learner makes the histories.
     #[arg(long, default_value = "ppo-lagrangian", value_parser = ["ppo-lagrangian", "noisy-optimal"])]
@@ -78,14 +82,31 @@ struct DatasetArgs {
     /// Point and Car: MuJoCo physics steps per agent action, the macro action
     /// (default 50 = 5 Safety-Gymnasium steps x 10 physics steps each);
     /// recorded in the file.
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", allow_hyphen_values = true, value_parser = parse_count)]
     physics_steps_per_action: Option<usize>,
     /// Keep N episodes of each learning run, spaced evenly in the logarithm of
     /// the episode index, so that a history spans the early, middle and
     /// expert phases of learning (default: keep every episode). Recorded in
     /// the file's config.
-    #[arg(long, value_name = "N")]
+    #[arg(long, value_name = "N", allow_hyphen_values = true, value_parser = parse_count)]
     keep_episodes: Option<usize>,
+    /// Replace an existing history file at --out (never a device, link,
+    /// folder or checkpoint file).
+    #[arg(long)]
+    force: bool,
+}
+
+/// A count (tasks, steps, episodes, threads, ...): a whole number from 0 up.
+/// Read with `allow_hyphen_values`, so `-1` is named as a bad count rather
+/// than "unexpected argument '-1'"; zero is refused where it matters by the
+/// command's own checks.
+fn parse_count(s: &str) -> Result<usize, String> {
+    s.trim().parse::<usize>().map_err(|_| {
+        format!(
+            "{s:?} is not a count: counts are whole numbers from 0 to {}",
+            usize::MAX
+        )
+    })
 }
 
 /// A seed: a whole number from 0 to 2^64 - 1 (clap would call `-1` an
@@ -107,6 +128,7 @@ fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
     let threads = args
         .threads
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let keep_episodes = args.keep_episodes;
     let r = icrl::cli::dataset::dataset_command(&icrl::cli::dataset::DatasetCommand {
         env: args.env,
         out: args.out,
@@ -118,6 +140,7 @@ fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
         source,
         physics_steps_per_action: args.physics_steps_per_action,
         keep_episodes: args.keep_episodes,
+        force: args.force,
     })?;
     println!(
         "wrote {}: {} histories, {} steps{}, {} episodes, {:.1} MB in {:.0} s ({:.0} environment steps/s{}); \
@@ -131,7 +154,8 @@ fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
         r.bytes as f64 / 1e6,
         r.seconds,
         r.steps_taken as f64 / r.seconds,
-        if r.steps < r.steps_taken {
+        // Only with --keep-episodes were episodes subsampled.
+        if keep_episodes.is_some() && r.steps < r.steps_taken {
             format!(", {} steps taken, episodes kept log-spaced", r.steps_taken)
         } else {
             String::new()
@@ -210,6 +234,13 @@ fn pretrain(args: PretrainArgs) -> anyhow::Result<()> {
     if args.method == "ad" {
         return pretrain_ad(args);
     }
+    if let Some(d) = &args.dataset {
+        anyhow::bail!(
+            "--dataset {} is for --method ad: EPPO collects its own experience (leave out --dataset, \
+             or add --method ad)",
+            d.display()
+        );
+    }
     let mut sets = args.set;
     if let Some(seed) = args.seed {
         sets.push(format!("seed={seed}"));
@@ -282,7 +313,7 @@ fn resume_command(env: &str, method: &str, checkpoint: &std::path::Path) -> Stri
         .unwrap_or(checkpoint);
     format!(
         "icrl pretrain --env {env} --method {method} --resume {}",
-        run.display()
+        icrl::run_summary::shell_word(run)
     )
 }
 
@@ -344,8 +375,14 @@ fn main() -> ExitCode {
                 .map(|f| println!("wrote {}", f.display()))
                 .map_err(Into::into)
         }
-        Command::PlotHistories { file, out, bins } => {
-            icrl::plots::training::plot_histories(&file, &out, bins as usize)
+        Command::PlotHistories {
+            file,
+            out,
+            bins,
+            force,
+        } => {
+            let existing = safety_envs::output::Existing::from_force(force);
+            icrl::plots::training::plot_histories(&file, &out, bins as usize, existing)
                 .map(|fs| fs.iter().for_each(|f| println!("wrote {}", f.display())))
                 .map_err(Into::into)
         }

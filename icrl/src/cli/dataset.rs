@@ -4,7 +4,24 @@
 
 use safety_envs::EnvName;
 
+use safety_envs::output::{Existing, Lock};
+
 use crate::data::dataset::{DatasetConfig, DatasetError, Source, generate};
+use crate::data::histories::HistoryError;
+
+/// The lock of one output file, `.NAME.lock` beside it (removed at the end):
+/// a second `dataset` writing the same file is refused with the first's pid.
+fn output_lock(out: &std::path::Path) -> Result<Lock, HistoryError> {
+    let name = out
+        .file_name()
+        .map_or_else(|| "out".into(), |n| n.to_string_lossy().into_owned());
+    let lock = out.with_file_name(format!(".{name}.lock"));
+    Ok(Lock::acquire(
+        &lock,
+        &format!("the output {}", out.display()),
+        true,
+    )?)
+}
 
 /// The `dataset` command's options (see `icrl dataset --help`).
 #[derive(Clone, Debug)]
@@ -22,6 +39,8 @@ pub struct DatasetCommand {
     pub physics_steps_per_action: Option<usize>,
     /// Episodes kept per history (log-spaced); `None` keeps all.
     pub keep_episodes: Option<usize>,
+    /// Replace an existing history file at `out` (`--force`).
+    pub force: bool,
 }
 
 /// What the `dataset` command made.
@@ -58,8 +77,11 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
         cfg.cost_limits = c.clone();
     }
     cfg.validate()?;
-    // A bad --out fails now, not after hours of generation.
-    crate::data::histories::check_output_path(&cmd.out)?;
+    // A bad --out fails now, not after hours of generation; a second
+    // process making the same file is refused while this one runs.
+    let existing = Existing::from_force(cmd.force);
+    crate::data::histories::check_output_path(&cmd.out, existing)?;
+    let _lock = output_lock(&cmd.out)?;
     // All histories are held, then concatenated for writing: check they fit.
     {
         let probe = safety_envs::make_env(env, &safety_envs::EnvOptions::default())?;
@@ -104,7 +126,7 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
     let started = std::time::Instant::now();
     let data = generate(&cfg, &|n| bar.inc(n as u64))?;
     bar.finish();
-    crate::data::histories::write_histories(&cmd.out, &data.file)?;
+    crate::data::histories::write_histories_to(&cmd.out, &data.file, existing)?;
     let seconds = started.elapsed().as_secs_f64();
     let bytes = std::fs::metadata(&cmd.out).map_or(0, |m| m.len());
     let (mut early, mut late, mut ne, mut nl) = ((0.0, 0.0), (0.0, 0.0), 0.0, 0.0);

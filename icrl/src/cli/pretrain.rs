@@ -27,8 +27,19 @@ pub fn eppo(
     let cfg_err = |e: crate::presets::PresetError| EppoError::Config(e.to_string());
     let (name, mut table) = match resume {
         Some(path) => {
-            let (run, _) = RunDir::resolve_resume(path)?;
-            let p = run.config_path();
+            let (run, ckpt) = RunDir::resolve_resume(path)?;
+            RunDir::check_resume_flags(&ckpt, "eppo", env)?;
+            let mut p = run.config_path();
+            // A lost config.toml: every EPPO checkpoint holds its own copy
+            // (training writes it back to the run folder).
+            if !p.exists() && ckpt.join("config.toml").is_file() {
+                eprintln!(
+                    "{} is missing: resuming with the copy in {}",
+                    p.display(),
+                    ckpt.display()
+                );
+                p = ckpt.join("config.toml");
+            }
             let text = std::fs::read_to_string(&p).map_err(|e| CheckpointError::Io {
                 path: p.clone(),
                 source: e,
@@ -47,7 +58,11 @@ pub fn eppo(
             crate::presets::preset_table("eppo", env, preset).map_err(cfg_err)?,
         ),
     };
+    let saved = resume.is_some().then(|| table.clone());
     crate::presets::apply_overrides(&mut table, sets).map_err(cfg_err)?;
+    if let (Some(saved), Some(path)) = (&saved, resume) {
+        check_eppo_resume(path, saved, &table)?;
+    }
     let cfg: EppoConfig = crate::presets::resolve(&name, table).map_err(cfg_err)?;
     let opts = PretrainOptions {
         env: env_name,
@@ -61,6 +76,100 @@ pub fn eppo(
         eprintln!("warning: {e}");
     }
     Ok(report)
+}
+
+/// Settings a resumed EPPO run may change: its length, how it saves, and
+/// the machine it runs on. Any other change (`lr`, `seed`, the model, ...)
+/// would make one run of two configurations, and is refused.
+pub const EPPO_RESUME_MAY_CHANGE: [&str; 6] = [
+    "total_updates",
+    "checkpoint_every",
+    "keep_checkpoints",
+    "torch_threads",
+    "env_threads",
+    "device",
+];
+
+/// The resume rule (EPPO; AD has the same in `ad::check_resumable`): the
+/// changes `--set`/`--seed` make to the run's `config.toml` are printed when
+/// allowed ([`EPPO_RESUME_MAY_CHANGE`]) and refused otherwise; a
+/// `total_updates` that does not extend the run is refused; resuming an
+/// older checkpoint than the run's latest is announced.
+fn check_eppo_resume(path: &Path, saved: &toml::Table, now: &toml::Table) -> Result<(), EppoError> {
+    let (run, ckpt) = RunDir::resolve_resume(path)?;
+    let mut old = Vec::new();
+    let mut new = Vec::new();
+    flatten("", saved, &mut old);
+    flatten("", now, &mut new);
+    let mut allowed = Vec::new();
+    let mut refused = Vec::new();
+    for (key, after) in &new {
+        let before = old.iter().find(|(k, _)| k == key).map(|(_, v)| v.as_str());
+        if before == Some(after.as_str()) {
+            continue;
+        }
+        let change = format!("{key}: {} -> {after}", before.unwrap_or("(unset)"));
+        if EPPO_RESUME_MAY_CHANGE.contains(&key.as_str()) {
+            allowed.push(change);
+        } else {
+            refused.push(change);
+        }
+    }
+    if !refused.is_empty() {
+        return Err(EppoError::Config(format!(
+            "cannot resume {}: these settings differ from its config.toml: {}; only {} may change \
+             (start a new run to train with other settings)",
+            run.path.display(),
+            refused.join(", "),
+            EPPO_RESUME_MAY_CHANGE.join(", ")
+        )));
+    }
+    // Updates done: the checkpoint's manifest records them.
+    let done = fs::read_to_string(ckpt.join(crate::checkpoint::MANIFEST))
+        .ok()
+        .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
+        .and_then(|v| v["updates"].as_u64());
+    let total = now.get("total_updates").and_then(toml::Value::as_integer);
+    if let (Some(done), Some(total)) = (done, total)
+        && total <= done as i64
+    {
+        return Err(EppoError::Config(format!(
+            "cannot resume {}: it has done {done} updates and total_updates is {total}, so nothing \
+             would be trained; pass --set total_updates={} or more to extend it",
+            ckpt.display(),
+            done + 1
+        )));
+    }
+    if let Ok(Some(latest)) = run.latest_checkpoint()
+        && latest != ckpt
+    {
+        eprintln!(
+            "warning: resuming {} although the run's latest checkpoint is {}: the run continues \
+             from the older one (a fork); the later checkpoints stay until it overwrites them, \
+             so resume the run folder itself to continue from the latest",
+            ckpt.display(),
+            latest.display()
+        );
+    }
+    for change in &allowed {
+        eprintln!("resuming {} with {change}", run.path.display());
+    }
+    Ok(())
+}
+
+/// `(dotted.key, value)` for every leaf of a TOML table.
+fn flatten(prefix: &str, table: &toml::Table, out: &mut Vec<(String, String)>) {
+    for (k, v) in table {
+        let key = if prefix.is_empty() {
+            k.clone()
+        } else {
+            format!("{prefix}.{k}")
+        };
+        match v {
+            toml::Value::Table(t) => flatten(&key, t, out),
+            other => out.push((key, other.to_string())),
+        }
+    }
 }
 
 /// The `pretrain --method ad` command: a preset (or a resumed run's config)
@@ -85,7 +194,9 @@ pub fn ad(
                     path.display()
                 )));
             }
-            Some(RunDir::resolve_resume(path)?)
+            let (run, ckpt) = RunDir::resolve_resume(path)?;
+            RunDir::check_resume_flags(&ckpt, "ad", env)?;
+            Some((run, ckpt))
         }
         None => None,
     };
@@ -156,7 +267,7 @@ pub fn ad(
             m.seconds
         )
     };
-    let summary = ad::train(
+    let result = ad::train(
         &req,
         &mut |m| {
             if hidden {
@@ -166,7 +277,15 @@ pub fn ad(
             }
         },
         &mut |u| bar.set_position(u as u64),
-    )?;
+    );
+    if result.is_err() && resume.is_none() {
+        // A refused start leaves no empty run folder behind.
+        RunDir {
+            path: run_dir.clone(),
+        }
+        .remove_if_unused();
+    }
+    let summary = result?;
     bar.finish();
     Ok(summary)
 }

@@ -52,6 +52,7 @@ use std::ops::Range;
 use std::path::{Path, PathBuf};
 
 use hdf5::types::VarLenUnicode;
+use safety_envs::output::{self, Existing, OutputError};
 use safety_envs::{Cell, EnvName, OLD_PHYSICS_STEPS_PER_ACTION, PHYSICS_STEPS_PER_ACTION, Task};
 use thiserror::Error;
 
@@ -173,6 +174,12 @@ impl fmt::Display for Problem {
             Problem::Output(what) => write!(f, "cannot write the file here: {what}"),
             Problem::Damaged(what) => write!(f, "damaged: {what}"),
         }
+    }
+}
+
+impl From<OutputError> for HistoryError {
+    fn from(e: OutputError) -> Self {
+        HistoryError::new(&e.path, Problem::Output(e.problem))
     }
 }
 
@@ -468,9 +475,10 @@ pub fn temp_path(path: &Path) -> PathBuf {
 }
 
 /// Checks, before any long work, that `path` can receive a history file:
-/// it is not a folder, its folder exists, and `<path>.tmp` can be created
-/// there (the probe is removed again).
-pub fn check_output_path(path: &Path) -> Result<(), HistoryError> {
+/// it is not a folder, its folder exists, and it is free (or, with
+/// [`Existing::Replace`], a regular file of ours: see
+/// [`safety_envs::output::check_output`]).
+pub fn check_output_path(path: &Path, existing: Existing) -> Result<(), HistoryError> {
     let err = |m: String| HistoryError::new(path, Problem::Output(m));
     if path.is_dir() {
         return Err(err(format!(
@@ -478,22 +486,7 @@ pub fn check_output_path(path: &Path) -> Result<(), HistoryError> {
             path.join("histories.h5").display()
         )));
     }
-    let parent = match path.parent() {
-        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
-        _ => PathBuf::from("."),
-    };
-    if !parent.is_dir() {
-        return Err(err(format!(
-            "the folder {} does not exist; create it first (mkdir -p {})",
-            parent.display(),
-            parent.display()
-        )));
-    }
-    let tmp = temp_path(path);
-    std::fs::File::create(&tmp)
-        .map_err(|e| err(format!("cannot create {}: {e}", tmp.display())))?;
-    let _ = std::fs::remove_file(&tmp);
-    Ok(())
+    output::check_output(path, existing).map_err(|e| err(e.problem))
 }
 
 /// Creates dataset `name` of `shape` (row-major `data`), chunked along the
@@ -541,8 +534,20 @@ fn get<T: hdf5::H5Type>(f: &hdf5::File, name: &str) -> hdf5::Result<(Vec<T>, Vec
     }
 }
 
-/// Writes `histories` to `path` (through `<path>.tmp` and a rename).
+/// Writes `histories` to `path` atomically ([`output::write_file`]: a
+/// temporary file beside it, synced, then renamed), replacing a history
+/// file there but never a device, link, folder or checkpoint file.
 pub fn write_histories(path: &Path, file: &HistoryFile) -> Result<(), HistoryError> {
+    write_histories_to(path, file, Existing::Replace)
+}
+
+/// [`write_histories`], refusing an existing `path` unless `existing` is
+/// [`Existing::Replace`] (the `dataset` command's `--force`).
+pub fn write_histories_to(
+    path: &Path,
+    file: &HistoryFile,
+    existing: Existing,
+) -> Result<(), HistoryError> {
     let err = |p| HistoryError::new(path, p);
     if file.histories.is_empty() {
         return Err(err(Problem::Empty("no histories to write".into())));
@@ -564,24 +569,12 @@ pub fn write_histories(path: &Path, file: &HistoryFile) -> Result<(), HistoryErr
             ))));
         }
     }
-    let tmp = temp_path(path);
-    let result = write_raw(&tmp, file, n_obstacles)
-        .and_then(|()| seal(&tmp).map_err(|e| hdf5::Error::from(e.to_string().as_str())));
-    match result {
-        Ok(()) => std::fs::rename(&tmp, path).map_err(|e| {
-            // Never leave the temporary file beside an output that failed.
-            let _ = std::fs::remove_file(&tmp);
-            err(Problem::Output(format!(
-                "renaming {} into place: {e}",
-                tmp.display()
-            )))
-        }),
-        Err(e) => {
-            // Best effort: never leave a partial temporary file behind.
-            let _ = std::fs::remove_file(&tmp);
-            Err(err(Problem::Unreadable(e.to_string())))
-        }
-    }
+    check_output_path(path, existing)?;
+    output::write_file(path, existing, |tmp| {
+        write_raw(tmp, file, n_obstacles)
+            .and_then(|()| seal(tmp).map_err(|e| hdf5::Error::from(e.to_string().as_str())))
+            .map_err(|e| err(Problem::Unreadable(e.to_string())))
+    })
 }
 
 fn write_raw(tmp: &Path, file: &HistoryFile, n_obstacles: usize) -> hdf5::Result<()> {
@@ -963,7 +956,7 @@ mod tests {
         let file = tiny_file(3);
         write_histories(&path, &file).unwrap();
         assert!(
-            !temp_path(&path).exists(),
+            !output::temp_path(&path).exists(),
             "the temporary file must be renamed away"
         );
         let back = read_histories(&path, Some("darkroom")).unwrap();
@@ -1105,7 +1098,7 @@ mod tests {
         file.histories[1] = History::new(file.histories[1].task.clone(), 5.0);
         let e = write_histories(&path, &file).unwrap_err();
         assert!(matches!(e.problem, Problem::Empty(_)), "{e}");
-        assert!(!path.exists() && !temp_path(&path).exists());
+        assert!(!path.exists() && !output::temp_path(&path).exists());
         // A file whose per-history table names a history without steps.
         let mut file = tiny_file(2);
         write_histories(&path, &file).unwrap();
@@ -1139,20 +1132,23 @@ mod tests {
     #[test]
     fn output_paths_are_checked_before_any_work() {
         let dir = tmpdir("out");
-        let e = check_output_path(&dir).unwrap_err();
+        let e = check_output_path(&dir, Existing::Refuse).unwrap_err();
         assert!(matches!(e.problem, Problem::Output(_)), "{e}");
         assert!(e.to_string().contains("it is a folder"), "{e}");
-        assert!(!temp_path(&dir).exists(), "no DIR.tmp beside the folder");
-        let e = check_output_path(&dir.join("missing/h.h5"))
+        assert!(
+            !output::temp_path(&dir).exists(),
+            "no DIR.tmp beside the folder"
+        );
+        let e = check_output_path(&dir.join("missing/h.h5"), Existing::Refuse)
             .unwrap_err()
             .to_string();
         assert!(
             e.contains("does not exist") && e.contains("mkdir -p"),
             "{e}"
         );
-        check_output_path(&dir.join("h.h5")).unwrap();
+        check_output_path(&dir.join("h.h5"), Existing::Refuse).unwrap();
         assert!(
-            !temp_path(&dir.join("h.h5")).exists(),
+            !output::temp_path(&dir.join("h.h5")).exists(),
             "the probe is removed"
         );
         std::fs::remove_dir_all(dir).unwrap();

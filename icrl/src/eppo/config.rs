@@ -256,7 +256,7 @@ impl EppoConfig {
             ("ctg_min", f64::from(self.ctg_min), Range::NON_NEGATIVE),
             ("ctg_max", f64::from(self.ctg_max), Range::POSITIVE),
             ("gamma", self.gamma, Range::UNIT_OPEN_HIGH),
-            ("tau", self.tau, Range::UNIT),
+            ("tau", self.tau, Range::UNIT_OPEN_LOW),
             ("lr", self.lr, Range::UNIT_OPEN_LOW),
             ("beta1", self.beta1, Range::UNIT_OPEN_HIGH),
             ("beta2", self.beta2, Range::UNIT_OPEN_HIGH),

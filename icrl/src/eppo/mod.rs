@@ -270,18 +270,21 @@ pub struct PretrainReport {
 
 /// Algorithm 1: collect rounds of trajectories, update, checkpoint, log.
 pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
-    let (run, mut learner, resumed_from) = match &opts.resume {
+    // `_lock`: one process per run folder until training returns.
+    let (run, mut learner, resumed_from, _lock) = match &opts.resume {
         Some(path) => {
             let (run, ckpt) = RunDir::resolve_resume(path)?;
+            let lock = run.lock()?;
             let learner = Learner::resume(opts.cfg.clone(), opts.env, &ckpt)?;
             // Rounds logged after the checkpoint are redone: drop their records.
             crate::checkpoint::truncate_metrics(&run.metrics_path(), "updates", learner.updates)?;
-            (run, learner, Some(ckpt))
+            (run, learner, Some(ckpt), lock)
         }
         None => {
             let learner = Learner::new(opts.cfg.clone(), opts.env)?;
             let run = RunDir::create(&opts.out, opts.env.as_str(), "eppo", opts.cfg.seed)?;
-            (run, learner, None)
+            let lock = run.lock()?;
+            (run, learner, None, lock)
         }
     };
     let cfg = learner.cfg.clone();

@@ -20,6 +20,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use indicatif::{ProgressBar, ProgressStyle};
+use safety_envs::output::{self, Existing};
 use safety_envs::{CmdpEnv, EnvError, EnvName, EnvOptions, Orientation, make_env, spawn_config};
 use serde::Serialize;
 
@@ -70,6 +71,9 @@ pub struct EvalOptions {
     pub in_distribution: bool,
     /// The command line, stored in every output file.
     pub command: String,
+    /// Replace output files that exist (`--force`); otherwise they are
+    /// refused before anything is evaluated.
+    pub force: bool,
 }
 
 /// The defaults of one environment.
@@ -202,13 +206,16 @@ fn io_err(path: &Path) -> impl Fn(std::io::Error) -> EvalCmdError + '_ {
 
 /// Writes `value` as pretty JSON to `path`.
 fn write_json(path: &Path, value: &impl Serialize) -> Result<(), EvalCmdError> {
-    let file = std::fs::File::create(path).map_err(io_err(path))?;
-    // Compact: the raw per-episode arrays run to hundreds of thousands of numbers.
-    serde_json::to_writer(std::io::BufWriter::new(file), value).map_err(|source| {
-        EvalCmdError::Json {
+    // Existing files were refused (or allowed by --force) before evaluating.
+    output::write_file(path, Existing::Replace, |tmp| {
+        let file = std::fs::File::create(tmp).map_err(io_err(path))?;
+        let mut w = std::io::BufWriter::new(file);
+        // Compact: the raw per-episode arrays run to hundreds of thousands of numbers.
+        serde_json::to_writer(&mut w, value).map_err(|source| EvalCmdError::Json {
             path: path.display().to_string(),
             source,
-        }
+        })?;
+        w.flush().map_err(io_err(path))
     })
 }
 
@@ -227,7 +234,6 @@ fn write_csvs(report: &EvalReport, stem: &Path) -> Result<Vec<PathBuf>, EvalCmdE
         report.command
     );
     let episodes = PathBuf::from(format!("{}_episodes.csv", stem.display()));
-    let mut f = std::fs::File::create(&episodes).map_err(io_err(&episodes))?;
     let mut text = header.clone();
     text.push_str("k,return_mean,return_se,cost_mean,cost_se,violation_mean,violation_se,success_mean,success_se,n_tasks,discovery_mean,discovery_se,discovery_n_tasks,revisit_mean,revisit_se,revisit_n_tasks,found_by_mean,found_by_se\n");
     for e in &report.summary.per_episode {
@@ -253,10 +259,9 @@ fn write_csvs(report: &EvalReport, stem: &Path) -> Result<Vec<PathBuf>, EvalCmdE
             e.found_by.se,
         ));
     }
-    f.write_all(text.as_bytes()).map_err(io_err(&episodes))?;
+    output::write_bytes(&episodes, Existing::Replace, text.as_bytes())?;
 
     let conds = PathBuf::from(format!("{}_conditions.csv", stem.display()));
-    let mut f = std::fs::File::create(&conds).map_err(io_err(&conds))?;
     let mut text = header;
     text.push_str("rtg,ctg,total_return_mean,total_return_se,max_cost_mean,max_cost_se,mean_cost_mean,mean_cost_se,violation_mean,violation_se,n_tasks\n");
     for c in &report.summary.per_condition {
@@ -275,7 +280,7 @@ fn write_csvs(report: &EvalReport, stem: &Path) -> Result<Vec<PathBuf>, EvalCmdE
             c.total_return.n
         ));
     }
-    f.write_all(text.as_bytes()).map_err(io_err(&conds))?;
+    output::write_bytes(&conds, Existing::Replace, text.as_bytes())?;
     Ok(vec![episodes, conds])
 }
 
@@ -285,11 +290,19 @@ fn run_one(
     sweep: bool,
     opts: &EvalOptions,
     record: bool,
+    like: Option<Method>,
     written: &mut Vec<PathBuf>,
 ) -> Result<EvalReport, EvalCmdError> {
     let d = env_defaults(opts.env);
     let range = loaded.budget_range.unwrap_or(d.budget_range);
-    let conds = conditions(loaded.method, sweep, opts, range)?;
+    // The random policy gets the conditions of the agents it is drawn
+    // beside (`like`: the first pretrained one), so its over-budget rate is
+    // measured against the same budgets.
+    let protocol_of = match (loaded.method, like) {
+        (Method::Random, Some(m)) => m,
+        (m, _) => m,
+    };
+    let conds = conditions(protocol_of, sweep, opts, range)?;
     // The time limit: asked for, else the one the policy was trained with,
     // else the environment's.
     let env = opts.env;
@@ -381,18 +394,78 @@ fn run_one(
         summary: result.summary(),
         result,
     };
-    let stem = opts.out.join(format!(
-        "{}_{}{}{}",
-        loaded.stem(),
-        env,
-        if sweep { "_sweep" } else { "" },
-        if opts.in_distribution { "_centre" } else { "" }
-    ));
+    let stem = report_stem(loaded, sweep, opts);
     let json = stem.with_extension("json");
     write_json(&json, &report)?;
     written.push(json);
     written.extend(write_csvs(&report, &stem)?);
     Ok(report)
+}
+
+/// The path stem of one report: `{stem}_{env}[_sweep][_centre]`.
+fn report_stem(loaded: &LoadedAgent, sweep: bool, opts: &EvalOptions) -> PathBuf {
+    opts.out.join(format!(
+        "{}_{}{}{}",
+        loaded.stem(),
+        opts.env,
+        if sweep { "_sweep" } else { "" },
+        if opts.in_distribution { "_centre" } else { "" }
+    ))
+}
+
+/// Every file an evaluation of `agents` may write, checked before anything
+/// is evaluated: two agents whose reports would share a name are refused
+/// (give each a distinct --label), and so are files that exist, unless
+/// `--force` (then only regular files outside checkpoints are replaced).
+fn check_planned_files(agents: &[LoadedAgent], opts: &EvalOptions) -> Result<(), EvalCmdError> {
+    let mut stems: Vec<(PathBuf, String)> = Vec::new();
+    for a in agents {
+        let stem = report_stem(a, false, opts);
+        if let Some((_, other)) = stems.iter().find(|(s, _)| *s == stem) {
+            return Err(EvalCmdError::Options(format!(
+                "{} and {} would both write {}.json and its CSVs: give each --checkpoint a distinct --label",
+                other,
+                checkpoint_name(a),
+                stem.display()
+            )));
+        }
+        stems.push((stem, checkpoint_name(a)));
+    }
+    let centre = if opts.in_distribution { "_centre" } else { "" };
+    let mut files = Vec::new();
+    for a in agents {
+        for sweep in [false, true] {
+            if sweep && !opts.sweep {
+                continue;
+            }
+            let stem = report_stem(a, sweep, opts).display().to_string();
+            files.extend(
+                ["_episodes.csv", "_conditions.csv", ".json"]
+                    .map(|x| PathBuf::from(format!("{stem}{x}"))),
+            );
+        }
+        if opts.render {
+            files.push(
+                opts.out
+                    .join(format!("render_{}_{}.gif", a.stem(), opts.env)),
+            );
+        }
+    }
+    for fig in ["figure1", "figure2"] {
+        if fig == "figure2" && !opts.sweep {
+            continue;
+        }
+        for ext in ["png", "svg"] {
+            files.push(opts.out.join(format!("{fig}_{}{centre}.{ext}", opts.env)));
+        }
+    }
+    // A missing --out is created later: nothing in it to replace.
+    if opts.out.is_dir() {
+        for f in files {
+            output::check_output(&f, Existing::from_force(opts.force))?;
+        }
+    }
+    Ok(())
 }
 
 /// Episodes per trajectory: `asked`, else the environment's `default`
@@ -532,9 +605,51 @@ impl EvalOptions {
         if !self.rtg.is_finite() {
             return bad(format!("--rtg {}: must be a finite number", self.rtg));
         }
-        Ok(())
+        // Conditioning values: EPPO's budgets are checked against the range
+        // the checkpoint was pretrained on; AD's RTG and CTG here.
+        let (lo, hi) = CONDITIONING_RANGE;
+        if !(lo..=hi).contains(&self.rtg) {
+            return bad(format!(
+                "--rtg {}: must be in [{lo}, {hi}] (episode returns are small numbers; the paper uses 1)",
+                self.rtg
+            ));
+        }
+        if let Some(b) = self
+            .budgets
+            .iter()
+            .flatten()
+            .find(|b| !(lo..=hi).contains(*b))
+        {
+            return bad(format!(
+                "--budgets: {b} must be in [{lo}, {hi}] (a cost budget per episode)"
+            ));
+        }
+        self.memory_estimate()
+            .check()
+            .map_err(EvalCmdError::Options)
+    }
+
+    /// The memory the results of one protocol take: every (budget, task,
+    /// episode) result and the sampled budgets, before anything is sampled.
+    pub fn memory_estimate(&self) -> crate::guard::MemoryEstimate {
+        let conds = self.budgets.as_ref().map_or(self.n_budgets, Vec::len) as f64;
+        let k = self.episodes.unwrap_or(env_defaults(self.env).episodes) as f64;
+        let mut m = crate::guard::MemoryEstimate {
+            levers: "--n-budgets (or the number of --budgets), --tasks or --episodes".into(),
+            ..Default::default()
+        };
+        m.add("budgets and their records", 64.0 * conds);
+        // Return, cost, length, goal flag, and the summary's working copies.
+        m.add(
+            "per-episode results of every budget, task and episode",
+            64.0 * conds * self.tasks as f64 * k,
+        );
+        m
     }
 }
+
+/// The RTG and CTG values `eval` accepts (`--rtg`, `--budgets`).
+pub const CONDITIONING_RANGE: (f32, f32) = (0.0, 10_000.0);
 
 /// Checks that `dir` can be created and written to, before any long work.
 pub fn check_output_dir(dir: &Path) -> Result<(), EvalCmdError> {
@@ -555,7 +670,7 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
     }
     if agents.is_empty() && !opts.random {
         return Err(EvalCmdError::Options(
-            "nothing to evaluate: give --checkpoint DIR and/or --random".into(),
+            "nothing to evaluate: give --checkpoint DIR, or leave out --no-random to evaluate the random policy".into(),
         ));
     }
     let probe = make_env(
@@ -565,9 +680,22 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
             ..EnvOptions::default()
         },
     )?;
+    // The agent the random policy is compared with (EPPO before AD).
+    let like = agents
+        .iter()
+        .filter(|a| a.method != Method::Random)
+        .min_by_key(|a| a.method as u8)
+        .map(|a| (a.method, a.budget_range, a.physics_steps_per_action));
     if opts.random {
-        agents.push(LoadedAgent::random(probe.action_space(), opts.eval_seed));
+        let mut random = LoadedAgent::random(probe.action_space(), opts.eval_seed);
+        if let Some((_, range, physics)) = like {
+            // The same budgets and macro action as the agent it is drawn beside.
+            random.budget_range = range;
+            random.physics_steps_per_action = physics;
+        }
+        agents.push(random);
     }
+    check_planned_files(&agents, opts)?;
     check_output_dir(&opts.out)?;
     let d = env_defaults(opts.env);
     let mut out = EvalOutputs::default();
@@ -590,7 +718,8 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
             opts.episodes = opts.episodes.or(longest_episodes);
         }
         let opts = &opts;
-        let report = run_one(loaded, false, opts, record, &mut out.files)?;
+        let like = like.map(|l| l.0);
+        let report = run_one(loaded, false, opts, record, like, &mut out.files)?;
         longest_episodes = Some(longest_episodes.unwrap_or(0).max(report.episodes));
         out.lines.push(headline(&report));
         if record && let Some(rec) = &report.result.recording {
@@ -605,7 +734,7 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
             _ => fig1.methods.push((loaded.name(), report.summary)),
         }
         if opts.sweep {
-            let report = run_one(loaded, true, opts, false, &mut out.files)?;
+            let report = run_one(loaded, true, opts, false, like, &mut out.files)?;
             out.lines.push(headline(&report));
             match loaded.method {
                 Method::Random => fig2.random = Some(report.summary),
@@ -631,7 +760,18 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
 /// reports earlier `eval` runs wrote into `dirs` (files that are not reports
 /// are skipped). Writes `figure1_all` and, when sweeps are present,
 /// `figure2_all` (PNG and SVG) into `out`.
-pub fn replot(dirs: &[PathBuf], out: &Path) -> Result<EvalOutputs, EvalCmdError> {
+pub fn replot(dirs: &[PathBuf], out: &Path, force: bool) -> Result<EvalOutputs, EvalCmdError> {
+    for f in [
+        "figure1_all.png",
+        "figure1_all.svg",
+        "figure2_all.png",
+        "figure2_all.svg",
+    ] {
+        // A missing `out` is created below: nothing in it to replace.
+        if out.is_dir() {
+            output::check_output(&out.join(f), Existing::from_force(force))?;
+        }
+    }
     // (env, method, sweep) -> summary, in file-name order for stability.
     let mut reports: Vec<(EnvName, Method, bool, Summary)> = Vec::new();
     for dir in dirs {
@@ -649,16 +789,26 @@ pub fn replot(dirs: &[PathBuf], out: &Path) -> Result<EvalOutputs, EvalCmdError>
         files.sort();
         for f in files {
             let text = std::fs::read(&f).map_err(io_err(&f))?;
-            let Ok(v) = serde_json::from_slice::<serde_json::Value>(&text) else {
-                continue;
-            };
+            // A damaged or foreign JSON file is named, never skipped in
+            // silence: the figure would lack a curve without saying so.
+            let v = serde_json::from_slice::<serde_json::Value>(&text).map_err(|e| {
+                EvalCmdError::Options(format!(
+                    "--from: {} is not readable JSON ({e}): a damaged eval report? Re-run the eval \
+                     that wrote it, or move the file out of the folder",
+                    f.display()
+                ))
+            })?;
             let (Some(env), Some(method), Some(protocol), Some(summary)) = (
                 v.get("env").and_then(|e| e.as_str()),
                 v.get("method").and_then(|m| m.as_str()),
                 v.get("protocol").and_then(|p| p.as_str()),
                 v.get("summary"),
             ) else {
-                continue;
+                return Err(EvalCmdError::Options(format!(
+                    "--from: {} is JSON but not an icrl eval report (it lacks env, method, protocol or \
+                     summary): move it out of the folder",
+                    f.display()
+                )));
             };
             // In-distribution diagnostics are not the paper's figures.
             let Ok(env) = env.parse::<EnvName>() else {
@@ -761,6 +911,7 @@ mod tests {
             command: "test".into(),
             seed_torch: false,
             in_distribution: false,
+            force: false,
         }
     }
 
@@ -828,7 +979,12 @@ mod tests {
         b.episodes = Some(2);
         b.sweep = false;
         run(Vec::new(), &b).unwrap();
-        let out = replot(&[dir.join("darkroom"), dir.join("point")], &dir.join("all")).unwrap();
+        let out = replot(
+            &[dir.join("darkroom"), dir.join("point")],
+            &dir.join("all"),
+            false,
+        )
+        .unwrap();
         assert_eq!(out.files.len(), 2, "figure 1 only: no sweeps");
         assert!(
             out.lines[0].contains("2 reports (2 environments)"),
@@ -841,7 +997,7 @@ mod tests {
                 .len()
                 > 1000
         );
-        let e = replot(&[dir.join("all")], &dir.join("x"))
+        let e = replot(&[dir.join("all")], &dir.join("x"), false)
             .unwrap_err()
             .to_string();
         assert!(e.contains("no eval reports"), "{e}");

@@ -28,6 +28,9 @@ pub enum EvalCmdError {
         path: String,
         source: std::io::Error,
     },
+    /// An output path that is not ours to write.
+    #[error(transparent)]
+    Output(#[from] safety_envs::output::OutputError),
     #[error("{path}: {source}")]
     Json {
         path: String,

@@ -320,6 +320,7 @@ mod tests {
             command: "test".into(),
             seed_torch: false,
             in_distribution: false,
+            force: false,
         }
     }
 
@@ -504,6 +505,7 @@ mod tests {
         // Budgets outside EPPO's pretraining range are refused.
         let agent = load_checkpoint(&trained.run_dir, EnvName::DarkRoom).unwrap();
         opts.budgets = Some(vec![16.0]);
+        opts.force = true; // the same --out again
         let e = run(vec![agent], &opts).unwrap_err().to_string();
         assert!(e.contains("budget 16 is outside the range [1, 15]"), "{e}");
         std::fs::remove_dir_all(&root).unwrap();

@@ -4,6 +4,7 @@
 use std::path::Path;
 
 use plotters::prelude::*;
+use safety_envs::output::{self, Existing};
 
 use super::{PlotError, ensure_font};
 use crate::eval::{Recording, TaskRecord};
@@ -15,6 +16,22 @@ use crate::eval::{Recording, TaskRecord};
 /// frame with the whole episode's path (keeps a 50-episode GIF small).
 /// Observations are the agent's `[row, col]`. Returns the number of frames.
 pub fn darkroom_animation(
+    recording: &Recording,
+    task: &TaskRecord,
+    budget: f32,
+    step_frames: &dyn Fn(usize) -> bool,
+    path: &Path,
+) -> Result<usize, PlotError> {
+    let mut frames = 0;
+    output::write_file::<PlotError>(path, Existing::Replace, |tmp| {
+        frames = darkroom_animation_to(recording, task, budget, step_frames, tmp)?;
+        Ok(())
+    })?;
+    Ok(frames)
+}
+
+/// [`darkroom_animation`] into `path` directly (the temporary file).
+fn darkroom_animation_to(
     recording: &Recording,
     task: &TaskRecord,
     budget: f32,
@@ -171,6 +188,24 @@ pub fn nav_animation(
     stride: usize,
     path: &Path,
 ) -> Result<usize, PlotError> {
+    let mut frames = 0;
+    output::write_file::<PlotError>(path, Existing::Replace, |tmp| {
+        frames = nav_animation_to(recording, task, arena, budget, step_frames, stride, tmp)?;
+        Ok(())
+    })?;
+    Ok(frames)
+}
+
+/// [`nav_animation`] into `path` directly (the temporary file).
+fn nav_animation_to(
+    recording: &Recording,
+    task: &TaskRecord,
+    arena: &ArenaGeometry,
+    budget: f32,
+    step_frames: &dyn Fn(usize) -> bool,
+    stride: usize,
+    path: &Path,
+) -> Result<usize, PlotError> {
     if recording.episodes.is_empty()
         || recording
             .episodes
@@ -278,6 +313,24 @@ pub fn nav_animation(
 /// recorded observation. Frames as in [`nav_animation`]. Returns the number
 /// of frames.
 pub fn nav_render_animation(
+    env: &mut safety_envs::SafeDarkMujoco,
+    recording: &Recording,
+    task: &TaskRecord,
+    budget: f32,
+    step_frames: &dyn Fn(usize) -> bool,
+    stride: usize,
+    path: &Path,
+) -> Result<usize, PlotError> {
+    let mut frames = 0;
+    output::write_file::<PlotError>(path, Existing::Replace, |tmp| {
+        frames = nav_render_animation_to(env, recording, task, budget, step_frames, stride, tmp)?;
+        Ok(())
+    })?;
+    Ok(frames)
+}
+
+/// [`nav_render_animation`] into `path` directly (the temporary file).
+fn nav_render_animation_to(
     env: &mut safety_envs::SafeDarkMujoco,
     recording: &Recording,
     task: &TaskRecord,

@@ -27,6 +27,7 @@ use std::sync::OnceLock;
 use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::FontStyle;
+use safety_envs::output::{self, Existing};
 use thiserror::Error;
 
 use crate::eval::Summary;
@@ -52,6 +53,9 @@ pub enum PlotError {
         path: String,
         source: std::io::Error,
     },
+    /// The output path is not ours to write (see [`safety_envs::output`]).
+    #[error(transparent)]
+    Output(#[from] safety_envs::output::OutputError),
 }
 
 /// Font files tried after `ICRL_FONT`.
@@ -189,16 +193,17 @@ pub fn draw_panels(
             message: e,
         }
     };
-    {
-        let root = BitMapBackend::new(&png, size).into_drawing_area();
+    // Each file atomically: a failed write leaves no truncated figure.
+    output::write_file::<PlotError>(&png, Existing::Replace, |tmp| {
+        let root = BitMapBackend::new(tmp, size).into_drawing_area();
         draw_grid(&root, rows, cols, panels).map_err(err(&png))?;
-        root.present().map_err(|e| err(&png)(e.to_string()))?;
-    }
-    {
-        let root = SVGBackend::new(&svg, size).into_drawing_area();
+        root.present().map_err(|e| err(&png)(e.to_string()))
+    })?;
+    output::write_file::<PlotError>(&svg, Existing::Replace, |tmp| {
+        let root = SVGBackend::new(tmp, size).into_drawing_area();
         draw_grid(&root, rows, cols, panels).map_err(err(&svg))?;
-        root.present().map_err(|e| err(&svg)(e.to_string()))?;
-    }
+        root.present().map_err(|e| err(&svg)(e.to_string()))
+    })?;
     Ok(vec![png, svg])
 }
 

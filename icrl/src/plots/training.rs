@@ -3,29 +3,42 @@
 
 use std::path::{Path, PathBuf};
 
-use crate::checkpoint::CheckpointError;
+use safety_envs::output::{self, Existing};
+
+use super::PlotError;
 use std::fs;
 
 use crate::ad::{AdError, AdMetrics, io_err};
 use crate::data::dataset::DatasetError;
-use crate::eppo::EppoError;
 
 /// Draws the learning curves of a run from its `metrics.jsonl` into
 /// `<run>/learning_curve.png`: episodic return (all episodes, first and last
 /// episode of each trajectory), episodic cost (same three) and lambda against
 /// environment steps, each a moving average over `window` records. Text uses
 /// DejaVu Sans (or the `.ttf` named by `ICRL_FONT`).
-pub fn plot_learning_curve(run_dir: &Path, window: usize) -> Result<PathBuf, EppoError> {
+pub fn plot_learning_curve(run_dir: &Path, window: usize) -> Result<PathBuf, PlotError> {
     use plotters::prelude::*;
     let path = run_dir.join("metrics.jsonl");
-    let text = std::fs::read_to_string(&path).map_err(|e| CheckpointError::Io {
-        path: path.clone(),
-        source: e,
+    let text = std::fs::read_to_string(&path).map_err(|source| PlotError::Io {
+        path: path.display().to_string(),
+        source,
     })?;
     let records: Vec<serde_json::Value> = text
         .lines()
         .filter_map(|l| serde_json::from_str(l).ok())
         .collect();
+    // Garbage (or an empty file) would draw empty axes: say so instead.
+    if !records
+        .iter()
+        .any(|r| r.get("env_steps").is_some_and(|x| x.is_number()))
+    {
+        return Err(PlotError::Empty(format!(
+            "{}: no metric records ({} lines, none a JSON object with env_steps); is this a run \
+             folder written by icrl pretrain?",
+            path.display(),
+            text.lines().count()
+        )));
+    }
     let smooth = |key: &str| -> Vec<(f64, f64)> {
         let xs: Vec<(f64, f64)> = records
             .iter()
@@ -41,16 +54,12 @@ pub fn plot_learning_curve(run_dir: &Path, window: usize) -> Result<PathBuf, Epp
             })
             .collect()
     };
-    let font_path = std::env::var("ICRL_FONT")
-        .unwrap_or_else(|_| "/usr/share/fonts/truetype/dejavu/DejaVuSans.ttf".into());
-    let font_err = |e: String| EppoError::Config(format!("learning curve: font {font_path}: {e}"));
-    let bytes = std::fs::read(&font_path).map_err(|e| font_err(e.to_string()))?;
-    // plotters keeps a 'static reference: the font lives for the process.
-    let bytes: &'static [u8] = Box::leak(bytes.into_boxed_slice());
-    plotters::style::register_font("sans-serif", FontStyle::Normal, bytes)
-        .map_err(|_| font_err("not a TrueType font".into()))?;
+    super::ensure_font()?;
     let out = run_dir.join("learning_curve.png");
-    let draw_err = |e: String| EppoError::Config(format!("learning curve {}: {e}", out.display()));
+    let draw_err = |e: String| PlotError::Draw {
+        path: out.display().to_string(),
+        message: e,
+    };
     let colours = [
         RGBColor(31, 119, 180),
         RGBColor(255, 127, 14),
@@ -79,49 +88,51 @@ pub fn plot_learning_curve(run_dir: &Path, window: usize) -> Result<PathBuf, Epp
         ),
         ("Lagrange multiplier", "lambda", vec![("lambda", "lambda")]),
     ];
-    let root = BitMapBackend::new(&out, (1500, 450)).into_drawing_area();
-    root.fill(&WHITE).map_err(|e| draw_err(e.to_string()))?;
-    for ((title, y_label, keys), area) in panels.iter().zip(root.split_evenly((1, 3))) {
-        let curves: Vec<(&str, Vec<(f64, f64)>)> =
-            keys.iter().map(|(k, l)| (*l, smooth(k))).collect();
-        let all = curves.iter().flat_map(|c| c.1.iter());
-        let (x_max, y_min, y_max) = all.fold((1.0f64, 0.0f64, 1e-3f64), |(a, b, c), p| {
-            (a.max(p.0), b.min(p.1), c.max(p.1))
-        });
-        let mut chart = ChartBuilder::on(&area)
-            .caption(*title, ("sans-serif", 20))
-            .margin(12)
-            .x_label_area_size(40)
-            .y_label_area_size(50)
-            .build_cartesian_2d(0.0..x_max, y_min..y_max * 1.05)
-            .map_err(|e| draw_err(e.to_string()))?;
-        chart
-            .configure_mesh()
-            .x_desc("environment steps")
-            .y_desc(*y_label)
-            .x_labels(5)
-            .x_label_formatter(&|x| format!("{:.0}k", x / 1000.0))
-            .draw()
-            .map_err(|e| draw_err(e.to_string()))?;
-        for (i, (label, points)) in curves.into_iter().enumerate() {
-            let c = colours[i % colours.len()];
+    // The run's own figure: replaced, atomically (never a link or device).
+    output::write_file::<PlotError>(&out, Existing::Replace, |tmp| {
+        let root = BitMapBackend::new(tmp, (1500, 450)).into_drawing_area();
+        root.fill(&WHITE).map_err(|e| draw_err(e.to_string()))?;
+        for ((title, y_label, keys), area) in panels.iter().zip(root.split_evenly((1, 3))) {
+            let curves: Vec<(&str, Vec<(f64, f64)>)> =
+                keys.iter().map(|(k, l)| (*l, smooth(k))).collect();
+            let all = curves.iter().flat_map(|c| c.1.iter());
+            let (x_max, y_min, y_max) = all.fold((1.0f64, 0.0f64, 1e-3f64), |(a, b, c), p| {
+                (a.max(p.0), b.min(p.1), c.max(p.1))
+            });
+            let mut chart = ChartBuilder::on(&area)
+                .caption(*title, ("sans-serif", 20))
+                .margin(12)
+                .x_label_area_size(40)
+                .y_label_area_size(50)
+                .build_cartesian_2d(0.0..x_max, y_min..y_max * 1.05)
+                .map_err(|e| draw_err(e.to_string()))?;
             chart
-                .draw_series(LineSeries::new(points, c.stroke_width(2)))
-                .map_err(|e| draw_err(e.to_string()))?
-                .label(label)
-                .legend(move |(x, y)| {
-                    PathElement::new(vec![(x, y), (x + 18, y)], c.stroke_width(2))
-                });
+                .configure_mesh()
+                .x_desc("environment steps")
+                .y_desc(*y_label)
+                .x_labels(5)
+                .x_label_formatter(&|x| format!("{:.0}k", x / 1000.0))
+                .draw()
+                .map_err(|e| draw_err(e.to_string()))?;
+            for (i, (label, points)) in curves.into_iter().enumerate() {
+                let c = colours[i % colours.len()];
+                chart
+                    .draw_series(LineSeries::new(points, c.stroke_width(2)))
+                    .map_err(|e| draw_err(e.to_string()))?
+                    .label(label)
+                    .legend(move |(x, y)| {
+                        PathElement::new(vec![(x, y), (x + 18, y)], c.stroke_width(2))
+                    });
+            }
+            chart
+                .configure_series_labels()
+                .background_style(WHITE.mix(0.8))
+                .border_style(BLACK)
+                .draw()
+                .map_err(|e| draw_err(e.to_string()))?;
         }
-        chart
-            .configure_series_labels()
-            .background_style(WHITE.mix(0.8))
-            .border_style(BLACK)
-            .draw()
-            .map_err(|e| draw_err(e.to_string()))?;
-    }
-    root.present().map_err(|e| draw_err(e.to_string()))?;
-    drop(root);
+        root.present().map_err(|e| draw_err(e.to_string()))
+    })?;
     Ok(out)
 }
 
@@ -212,8 +223,13 @@ pub fn plot_histories(
     path: &std::path::Path,
     stem: &std::path::Path,
     bins: usize,
+    existing: Existing,
 ) -> Result<Vec<std::path::PathBuf>, DatasetError> {
     use crate::plots::{Band, HLine, METHOD_COLOURS, Panel, draw_panels};
+    for ext in ["png", "svg"] {
+        let p = stem.with_extension(ext);
+        output::check_output(&p, existing).map_err(|e| DatasetError::Config(e.to_string()))?;
+    }
     let file = crate::data::histories::read_histories(path, None)?;
     let bins = bins.max(1);
     let mut limits: Vec<f32> = Vec::new();

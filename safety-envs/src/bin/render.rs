@@ -23,6 +23,7 @@ use clap::Parser;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use safety_envs::mujoco::{Camera, Data, Model, Quality, Renderer, RgbImage};
+use safety_envs::output;
 use safety_envs::prelude::*;
 
 /// Render a MuJoCo scene off-screen to a PNG.
@@ -31,9 +32,13 @@ use safety_envs::prelude::*;
 struct Args {
     #[command(flatten)]
     source: SourceArgs,
-    /// PNG file to write.
+    /// PNG file to write (GIF with --rollout); an existing file is refused
+    /// unless --force.
     #[arg(long)]
     out: PathBuf,
+    /// Replace an existing --out (a regular file only).
+    #[arg(long)]
+    force: bool,
     /// Image width in pixels.
     #[arg(long, default_value_t = 480, value_parser = clap::value_parser!(u32).range(1..=8192))]
     width: u32,
@@ -47,7 +52,7 @@ struct Args {
     #[arg(long)]
     fast: bool,
     /// With --env: the task seed (default 0).
-    #[arg(long, conflicts_with = "scene")]
+    #[arg(long, conflicts_with = "scene", allow_hyphen_values = true, value_parser = parse_seed)]
     seed: Option<u64>,
     /// With --env: draw the task edge-oriented (evaluation) instead of
     /// centre-oriented (pretraining).
@@ -57,6 +62,17 @@ struct Args {
     #[arg(long, value_name = "STEPS", conflicts_with = "scene",
           value_parser = clap::value_parser!(u32).range(1..=10_000))]
     rollout: Option<u32>,
+}
+
+/// A seed: a whole number from 0 to 2^64 - 1 (clap would call `-1` an
+/// unexpected argument).
+fn parse_seed(s: &str) -> Result<u64, String> {
+    s.trim().parse::<u64>().map_err(|_| {
+        format!(
+            "{s:?} is not a seed: seeds are whole numbers from 0 to {}",
+            u64::MAX
+        )
+    })
 }
 
 /// Exactly one thing to render.
@@ -106,8 +122,15 @@ fn main() -> ExitCode {
         Quality::Model
     };
     let size = (args.width as usize, args.height as usize);
+    // Written beside --out and renamed into place; never over what is not ours.
+    let existing = output::Existing::from_force(args.force);
+    let write = |f: &dyn Fn(&std::path::Path) -> Result<()>| -> Result<()> {
+        output::write_file(&args.out, existing, |tmp| f(tmp))
+    };
     let result = match args.source.source() {
-        Source::Scene(path) => render_scene(&path, &args.out, size, &camera, quality),
+        Source::Scene(path) => {
+            write(&|tmp| render_scene(&path, tmp, &args.out, size, &camera, quality))
+        }
         Source::Env(name) => {
             let orientation = if args.edge {
                 Orientation::Edge
@@ -123,8 +146,8 @@ fn main() -> ExitCode {
                 quality,
             };
             match args.rollout {
-                None => view.task_png(&args.out),
-                Some(steps) => view.rollout_gif(steps as usize, &args.out),
+                None => write(&|tmp| view.task_png(tmp, &args.out)),
+                Some(steps) => write(&|tmp| view.rollout_gif(steps as usize, tmp, &args.out)),
             }
         }
     };
@@ -141,6 +164,7 @@ fn main() -> ExitCode {
 fn render_scene(
     scene: &std::path::Path,
     out: &std::path::Path,
+    dest: &std::path::Path,
     (width, height): (usize, usize),
     camera: &Camera,
     quality: Quality,
@@ -155,7 +179,7 @@ fn render_scene(
     image.save_png(out)?;
     println!(
         "wrote {} ({width}x{height}, {} camera) in {:.2} s",
-        out.display(),
+        dest.display(),
         match camera {
             Camera::Named(name) => format!("'{name}'"),
             Camera::Free { .. } => String::from("free"),
@@ -194,7 +218,7 @@ impl EnvView {
     }
 
     /// Writes the task (robot at its start) as a PNG.
-    fn task_png(&self, out: &std::path::Path) -> Result<()> {
+    fn task_png(&self, out: &std::path::Path, dest: &std::path::Path) -> Result<()> {
         let started = Instant::now();
         let task = self.task()?;
         let image = match self.name {
@@ -216,7 +240,7 @@ impl EnvView {
         image.save_png(out)?;
         println!(
             "wrote {} ({} task, seed {}, {}-oriented: goal {:?}, {} obstacles) in {:.2} s",
-            out.display(),
+            dest.display(),
             self.name,
             self.seed,
             self.orientation,
@@ -240,7 +264,12 @@ impl EnvView {
 
     /// Animates `steps` agent steps of a uniformly random policy (seeded by
     /// `--seed`) into a GIF; episodes restart in the same task.
-    fn rollout_gif(&self, steps: usize, out: &std::path::Path) -> Result<()> {
+    fn rollout_gif(
+        &self,
+        steps: usize,
+        out: &std::path::Path,
+        dest: &std::path::Path,
+    ) -> Result<()> {
         let started = Instant::now();
         let task = self.task()?;
         let mut rng = ChaCha8Rng::seed_from_u64(self.seed);
@@ -298,7 +327,7 @@ impl EnvView {
         println!(
             "wrote {} ({} random-policy steps of {} task seed {}, {}-oriented; {episodes} episode(s), \
              reward {total_reward}, cost {total_cost}) in {:.2} s",
-            out.display(),
+            dest.display(),
             steps,
             self.name,
             self.seed,
@@ -373,5 +402,20 @@ fn draw_darkroom(env: &SafeDarkRoom, trail: &[Cell], (width, height): (usize, us
         width,
         height,
         pixels,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_negative_seed_is_named_not_read_as_a_flag() {
+        let e = Args::try_parse_from([
+            "render", "--env", "darkroom", "--seed", "-1", "--out", "x.png",
+        ])
+        .unwrap_err()
+        .to_string();
+        assert!(e.contains("\"-1\" is not a seed"), "{e}");
     }
 }

@@ -25,20 +25,20 @@ pub struct EvalArgs {
     #[arg(long, value_name = "DIR", conflicts_with_all = ["checkpoint", "env"])]
     from: Vec<PathBuf>,
     /// Held-out evaluation tasks (edge-oriented).
-    #[arg(long, default_value_t = 16)]
+    #[arg(long, default_value_t = 16, allow_hyphen_values = true, value_parser = crate::parse_count)]
     tasks: usize,
     /// Episodes K per task, context carried across them (default: 50 SafeDarkRoom,
     /// 20 Point and Car, capped by what an EPPO model's context holds).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true, value_parser = crate::parse_count)]
     episodes: Option<usize>,
     /// Budgets (EPPO) or CTGs (AD) instead of the defaults, comma-separated.
     #[arg(long, value_delimiter = ',', allow_hyphen_values = true)]
     budgets: Option<Vec<f32>>,
     /// Budgets sampled for EPPO when --budgets is not given (paper: 100).
-    #[arg(long, default_value_t = 100)]
+    #[arg(long, default_value_t = 100, allow_hyphen_values = true, value_parser = crate::parse_count)]
     n_budgets: usize,
     /// RTG target for AD (paper: 1).
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = 1.0, allow_hyphen_values = true)]
     rtg: f32,
     /// Also run the budget sweep (Figure 2).
     #[arg(long)]
@@ -56,10 +56,10 @@ pub struct EvalArgs {
     #[arg(long, default_value_t = 0, allow_hyphen_values = true, value_parser = crate::parse_seed)]
     seed: u64,
     /// Trajectories acted on together.
-    #[arg(long, default_value_t = 256)]
+    #[arg(long, default_value_t = 256, allow_hyphen_values = true, value_parser = crate::parse_count)]
     batch: usize,
     /// Threads (environment stepping and libtorch); default: all cores.
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true, value_parser = crate::parse_count)]
     threads: Option<usize>,
     /// Act with the policy's mode instead of sampling.
     #[arg(long)]
@@ -69,13 +69,17 @@ pub struct EvalArgs {
     #[arg(long)]
     in_distribution: bool,
     /// Time limit in agent steps (default: the checkpoint's, else the environment's).
-    #[arg(long)]
+    #[arg(long, allow_hyphen_values = true, value_parser = crate::parse_count)]
     max_episode_steps: Option<usize>,
+    /// Replace output files that exist (regular files only; without it they
+    /// are refused before anything is evaluated).
+    #[arg(long)]
+    force: bool,
 }
 
 pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
     if !args.from.is_empty() {
-        let out = command::replot(&args.from, &args.out)?;
+        let out = command::replot(&args.from, &args.out, args.force)?;
         for line in &out.lines {
             println!("{line}");
         }
@@ -109,6 +113,7 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
         in_distribution: args.in_distribution,
         seed_torch: true,
         command: std::env::args().collect::<Vec<_>>().join(" "),
+        force: args.force,
     };
     // Bad options and an unwritable output folder fail before any loading.
     if !args.label.is_empty() && args.label.len() != args.checkpoint.len() {
@@ -119,17 +124,33 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
         );
     }
     opts.validate()?;
+    let made_out = !opts.out.exists();
     command::check_output_dir(&opts.out)?;
+    let result = evaluate(&args.checkpoint, &args.label, env, threads, &opts);
+    if result.is_err() && made_out {
+        // A refused eval leaves no empty --out folder behind (only if empty).
+        let _ = std::fs::remove_dir(&opts.out);
+    }
+    result
+}
+
+/// Loads the checkpoints and runs the evaluation.
+fn evaluate(
+    checkpoints: &[PathBuf],
+    labels: &[String],
+    env: EnvName,
+    threads: usize,
+    opts: &EvalOptions,
+) -> anyhow::Result<()> {
     tch::set_num_threads(threads as i32);
-    let mut agents = args
-        .checkpoint
+    let mut agents = checkpoints
         .iter()
         .map(|p| icrl::eval::load::load_checkpoint(p, env))
         .collect::<Result<Vec<_>, _>>()?;
-    for (agent, label) in agents.iter_mut().zip(&args.label) {
+    for (agent, label) in agents.iter_mut().zip(labels) {
         agent.label = Some(label.clone());
     }
-    let out = command::run(agents, &opts)?;
+    let out = command::run(agents, opts)?;
     for line in &out.lines {
         println!("{line}");
     }

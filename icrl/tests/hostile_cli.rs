@@ -1,0 +1,510 @@
+//! The `icrl` binary under the second hostile trial (issue 21): outputs never
+//! replace what is not ours, one process per run, and every message true.
+//! Each test runs the binary in a child process on tiny inputs.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn icrl(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_icrl"))
+        .args(args)
+        .output()
+        .expect("run icrl")
+}
+
+fn tmp(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("icrl-hostile-{name}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn s(p: &Path) -> String {
+    p.display().to_string()
+}
+
+/// Fails unless the command failed with `want` in stderr and no panic.
+fn refused(out: &Output, want: &str) {
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(!out.status.success(), "expected a failure: {err}");
+    assert_eq!(out.status.code(), Some(1), "exit 1: {err}");
+    assert!(err.contains(want), "expected {want:?} in: {err}");
+    assert!(
+        !err.contains("panicked") && !err.contains("backtrace"),
+        "no panic: {err}"
+    );
+}
+
+fn succeeded(out: &Output) -> String {
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "expected success: {err}");
+    String::from_utf8_lossy(&out.stdout).into_owned()
+}
+
+/// A tiny dataset command writing `out`.
+fn dataset(out: &str, extra: &[&str]) -> Output {
+    let mut args = vec![
+        "dataset",
+        "--env",
+        "darkroom",
+        "--out",
+        out,
+        "--tasks",
+        "1",
+        "--steps",
+        "300",
+        "--cost-limits",
+        "0",
+        "--threads",
+        "1",
+    ];
+    args.extend(extra);
+    icrl(&args)
+}
+
+#[test]
+fn dataset_never_replaces_what_is_not_ours() {
+    let dir = tmp("dataset-out");
+    // A device, a FIFO, a symlink: refused, even with --force, untouched.
+    refused(&dataset("/dev/null", &["--force"]), "it is a device");
+    assert!(!std::fs::metadata("/dev/null").unwrap().is_file());
+    let fifo = dir.join("fifo");
+    assert!(
+        Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap()
+            .success()
+    );
+    refused(&dataset(&s(&fifo), &["--force"]), "it is a FIFO");
+    // A checkpoint's weights.
+    let ck = dir.join("run/checkpoints/step_20");
+    std::fs::create_dir_all(&ck).unwrap();
+    std::fs::write(ck.join("manifest.json"), "{}").unwrap();
+    std::fs::write(ck.join("model.safetensors"), "weights").unwrap();
+    refused(
+        &dataset(&s(&ck.join("model.safetensors")), &["--force"]),
+        "a file of a checkpoint folder",
+    );
+    assert_eq!(
+        std::fs::read(ck.join("model.safetensors")).unwrap(),
+        b"weights"
+    );
+    // A file where the folder should be: named as such.
+    let afile = dir.join("afile");
+    std::fs::write(&afile, "notes").unwrap();
+    refused(
+        &dataset(&s(&afile.join("x.h5")), &[]),
+        "is a file, not a folder",
+    );
+    refused(
+        &icrl(&["pretrain", "--env", "darkroom", "--out", &s(&afile)]),
+        "not a folder (a file or a device is there)",
+    );
+    // An existing dataset: refused without --force, replaced with it.
+    let h5 = dir.join("h.h5");
+    let summary = succeeded(&dataset(&s(&h5), &[]));
+    assert!(
+        !summary.contains("log-spaced"),
+        "no --keep-episodes: {summary}"
+    );
+    let first = std::fs::read(&h5).unwrap();
+    refused(
+        &dataset(&s(&h5), &["--seed", "1"]),
+        "exists already: pass --force",
+    );
+    assert_eq!(std::fs::read(&h5).unwrap(), first, "untouched");
+    succeeded(&dataset(&s(&h5), &["--seed", "1", "--force"]));
+    assert_ne!(std::fs::read(&h5).unwrap(), first, "replaced with --force");
+    let left: Vec<String> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with('.'))
+        .collect();
+    assert!(left.is_empty(), "no temporary or lock file left: {left:?}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// A tiny darkroom EPPO run (2 updates) pretrained on budgets [2, 4];
+/// returns its run folder and what it printed.
+fn tiny_eppo_run(out: &Path) -> (PathBuf, String) {
+    let mut args = vec![
+        "pretrain",
+        "--env",
+        "darkroom",
+        "--out",
+        out.to_str().unwrap(),
+    ];
+    for set in [
+        "max_episode_steps=6",
+        "k_min=2",
+        "k_max=2",
+        "n_envs=2",
+        "batch_size=2",
+        "replay_capacity=1000",
+        "encoder_hidden=16",
+        "head_hidden=16",
+        "model.d_model=16",
+        "model.n_heads=2",
+        "model.n_layers=1",
+        "model.d_ff=32",
+        "model.max_len=12",
+        "total_updates=2",
+        "updates_per_round=2",
+        "learning_starts=0",
+        "checkpoint_every=2",
+        "torch_threads=1",
+        "env_threads=1",
+        "ctg_min=2",
+        "ctg_max=4",
+    ] {
+        args.extend(["--set", set]);
+    }
+    let stdout = succeeded(&icrl(&args));
+    let run = std::fs::read_dir(out)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    assert!(run.join("checkpoints/step_2").is_dir(), "{}", run.display());
+    (run, stdout)
+}
+
+/// `eval` of `checkpoints` (none: the random policy alone), tiny.
+fn eval(checkpoints: &[&Path], out: &Path, extra: &[&str]) -> Output {
+    let out = s(out);
+    let mut args = vec![
+        "eval",
+        "--env",
+        "darkroom",
+        "--tasks",
+        "2",
+        "--episodes",
+        "2",
+        "--n-budgets",
+        "3",
+        "--threads",
+        "1",
+        "--out",
+        &out,
+    ];
+    if extra.contains(&"--n-budgets") {
+        args.retain(|a| *a != "--n-budgets" && *a != "3");
+    }
+    let cks: Vec<String> = checkpoints.iter().map(|c| s(c)).collect();
+    for c in &cks {
+        args.extend(["--checkpoint", c.as_str()]);
+    }
+    args.extend(extra);
+    icrl(&args)
+}
+
+#[test]
+fn eval_outputs_conditions_and_reports_are_checked() {
+    let dir = tmp("eval");
+    let (run, _) = tiny_eppo_run(&dir.join("runs"));
+    let out = dir.join("eval");
+    // Bad 8: the random policy is judged against the agent's budgets.
+    succeeded(&eval(&[&run], &out, &[]));
+    let budgets = |name: &str| -> Vec<f64> {
+        let v: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(out.join(name)).unwrap()).unwrap();
+        v["result"]["conditions"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|c| c["ctg"].as_f64().unwrap())
+            .collect()
+    };
+    let (agent, random) = (
+        budgets("eppo_darkroom.json"),
+        budgets("random_darkroom.json"),
+    );
+    assert!(agent.iter().all(|b| (2.0..=4.0).contains(b)), "{agent:?}");
+    assert_eq!(agent, random, "the random policy gets the agent's budgets");
+    // Bad 1: existing reports are refused before evaluating; --force replaces.
+    refused(&eval(&[&run], &out, &[]), "exists already: pass --force");
+    succeeded(&eval(&[&run], &out, &["--force"]));
+    // Bad 4: two reports of one name.
+    refused(
+        &eval(&[&run, &run], &dir.join("eval2"), &[]),
+        "distinct --label",
+    );
+    refused(
+        &eval(
+            &[&run, &run],
+            &dir.join("eval2"),
+            &["--label", "a", "--label", "a"],
+        ),
+        "distinct --label",
+    );
+    let two = dir.join("eval3");
+    let o = eval(
+        &[&run, &run],
+        &two,
+        &["--label", "a", "--label", "b", "--no-random"],
+    );
+    let stdout = succeeded(&o);
+    let n = std::fs::read_dir(&two).unwrap().count();
+    assert!(
+        stdout.contains(&format!("wrote {n} files")),
+        "{stdout} vs {n} files"
+    );
+    // Bad 2 and 3: sizes under the memory estimate, conditioning in range.
+    let t = std::time::Instant::now();
+    refused(
+        &eval(&[&run], &dir.join("e4"), &["--n-budgets", "100000000000"]),
+        "needs about",
+    );
+    assert!(t.elapsed().as_secs() < 30, "refused before sampling");
+    refused(
+        &eval(&[], &dir.join("e4"), &["--rtg", "1e30"]),
+        "--rtg 1000000000000000000000000000000: must be in [0, 10000]",
+    );
+    refused(
+        &eval(&[], &dir.join("e4"), &["--budgets", "1e30"]),
+        "must be in [0, 10000]",
+    );
+    // Bad 5: a damaged report in --from is named, not skipped.
+    let json = out.join("eppo_darkroom.json");
+    let bytes = std::fs::read(&json).unwrap();
+    std::fs::write(&json, &bytes[..bytes.len() / 2]).unwrap();
+    refused(
+        &icrl(&["eval", "--from", &s(&out), "--out", &s(&dir.join("all"))]),
+        "eppo_darkroom.json is not readable JSON",
+    );
+    std::fs::write(&json, "{\"a\": 1}").unwrap();
+    refused(
+        &icrl(&["eval", "--from", &s(&out), "--out", &s(&dir.join("all"))]),
+        "not an icrl eval report",
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn a_run_held_by_another_process_is_refused_with_its_pid() {
+    let dir = tmp("lock");
+    let (run, _) = tiny_eppo_run(&dir.join("runs"));
+    // Another process holds the run (this test, through the same OS lock).
+    let lock = std::fs::OpenOptions::new()
+        .read(true)
+        .write(true)
+        .open(run.join(".lock"))
+        .unwrap();
+    lock.try_lock().unwrap();
+    std::fs::write(run.join(".lock"), format!("{}\n", std::process::id())).unwrap();
+    let before = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+    refused(
+        &icrl(&[
+            "pretrain",
+            "--env",
+            "darkroom",
+            "--resume",
+            &s(&run),
+            "--set",
+            "total_updates=4",
+        ]),
+        &format!(
+            "is in use by another icrl process (pid {})",
+            std::process::id()
+        ),
+    );
+    assert_eq!(
+        std::fs::read_to_string(run.join("metrics.jsonl")).unwrap(),
+        before
+    );
+    drop(lock);
+    // The other environment or method: named, with the flags that resume it.
+    let r = s(&run);
+    refused(
+        &icrl(&["pretrain", "--env", "point", "--resume", &r]),
+        "this is a darkroom EPPO run, not point EPPO; resume it with --env darkroom --method eppo",
+    );
+    refused(
+        &icrl(&[
+            "pretrain", "--env", "darkroom", "--method", "ad", "--resume", &r,
+        ]),
+        "this is a darkroom EPPO run, not darkroom AD",
+    );
+    refused(
+        &icrl(&["pretrain", "--env", "darkroom", "--dataset", "h.h5"]),
+        "--dataset h.h5 is for --method ad",
+    );
+    // The resume rule: listed changes are printed, others refused.
+    let resume = |extra: &[&str]| {
+        let mut args = vec!["pretrain", "--env", "darkroom", "--resume"];
+        let r = s(&run);
+        args.push(&r);
+        args.extend(extra);
+        icrl(&args)
+    };
+    refused(
+        &resume(&["--set", "lr=0.01"]),
+        "these settings differ from its config.toml: lr:",
+    );
+    refused(
+        &resume(&["--seed", "5", "--set", "total_updates=4"]),
+        "seed: ",
+    );
+    refused(
+        &resume(&["--set", "total_updates=1"]),
+        "it has done 2 updates and total_updates is 1, so nothing would be trained; pass --set total_updates=3",
+    );
+    // Released (as when its process dies): the resume goes ahead, even
+    // with config.toml lost (the checkpoint's copy is used and written back).
+    std::fs::remove_file(run.join("config.toml")).unwrap();
+    let o = resume(&["--set", "total_updates=4"]);
+    succeeded(&o);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("with total_updates: 2 -> 4"), "{err}");
+    assert!(
+        err.contains("config.toml is missing: resuming with the copy in"),
+        "{err}"
+    );
+    assert!(run.join("config.toml").is_file(), "written back");
+    assert!(run.join("checkpoints/step_4").is_dir());
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn the_printed_eval_command_works_as_printed() {
+    // A path with a space: the command must be quoted to survive pasting.
+    let dir = tmp("printed");
+    let (run, stdout) = tiny_eppo_run(&dir.join("my runs"));
+    let line = stdout
+        .lines()
+        .skip_while(|l| !l.starts_with("evaluate it with:"))
+        .nth(1)
+        .unwrap_or_else(|| panic!("no eval command: {stdout}"));
+    let words = shlex::split(line.trim()).unwrap_or_else(|| panic!("not shell words: {line}"));
+    assert_eq!(words[..3], ["cargo", "xtask", "eval"], "{line}");
+    let ck = words.iter().position(|w| w == "--checkpoint").unwrap();
+    assert!(Path::new(&words[ck + 1]).starts_with(&run), "{line}");
+    // `cargo xtask eval` passes its arguments to `icrl eval`: run them, on a
+    // tiny task set, into a temporary folder.
+    let mut args: Vec<String> = vec!["eval".into()];
+    let mut rest = words[3..].iter();
+    while let Some(w) = rest.next() {
+        if w == "--out" {
+            rest.next();
+        } else {
+            args.push(w.clone());
+        }
+    }
+    let out = s(&dir.join("eval"));
+    for a in [
+        "--tasks",
+        "1",
+        "--episodes",
+        "2",
+        "--n-budgets",
+        "1",
+        "--threads",
+        "1",
+        "--out",
+        &out,
+    ] {
+        args.push(a.into());
+    }
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    succeeded(&icrl(&args));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Fails unless clap refused the arguments (exit 2) with `want`.
+fn usage_error(out: &Output, want: &str) {
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(2), "a usage error: {err}");
+    assert!(err.contains(want), "expected {want:?} in: {err}");
+}
+
+#[test]
+fn negative_numbers_are_named_not_read_as_flags() {
+    let dir = tmp("negative");
+    let h5 = s(&dir.join("h.h5"));
+    let not_a_count = "\"-1\" is not a count";
+    let d = |flag: &str, v: &str| icrl(&["dataset", "--env", "darkroom", "--out", &h5, flag, v]);
+    usage_error(&d("--tasks", "-1"), not_a_count);
+    usage_error(&d("--steps", "-1"), not_a_count);
+    refused(
+        &d("--cost-limits", "-1"),
+        "cost limit -1 must be finite and non-negative",
+    );
+    let e = |flag: &str| icrl(&["eval", "--env", "darkroom", flag, "-1"]);
+    usage_error(&e("--episodes"), not_a_count);
+    usage_error(&e("--tasks"), not_a_count);
+    usage_error(&e("--n-budgets"), not_a_count);
+    refused(&e("--rtg"), "--rtg -1: must be in [0, 10000]");
+    usage_error(
+        &icrl(&["plot-training", &s(&dir), "--window", "-1"]),
+        not_a_count,
+    );
+    // plot-training of a garbage metrics.jsonl: refused, no empty figure.
+    std::fs::write(dir.join("metrics.jsonl"), "garbage\n{\"x\": 1}\n").unwrap();
+    refused(
+        &icrl(&["plot-training", &s(&dir)]),
+        "no metric records (2 lines, none a JSON object with env_steps)",
+    );
+    assert!(!dir.join("learning_curve.png").exists());
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn refused_runs_and_evals_leave_no_empty_folders() {
+    let dir = tmp("leftovers");
+    let out = dir.join("eval");
+    refused(
+        &icrl(&[
+            "eval",
+            "--env",
+            "darkroom",
+            "--checkpoint",
+            &s(&dir.join("none")),
+            "--out",
+            &s(&out),
+        ]),
+        "none",
+    );
+    assert!(!out.exists(), "no empty --out folder");
+    let h5 = dir.join("h.h5");
+    succeeded(&dataset(&s(&h5), &[]));
+    let runs = dir.join("runs");
+    refused(
+        &icrl(&[
+            "pretrain",
+            "--env",
+            "darkroom",
+            "--method",
+            "ad",
+            "--dataset",
+            &s(&h5),
+            "--out",
+            &s(&runs),
+            "--set",
+            "batch_size=1000000000",
+        ]),
+        "needs about",
+    );
+    refused(
+        &icrl(&[
+            "pretrain",
+            "--env",
+            "darkroom",
+            "--method",
+            "ad",
+            "--dataset",
+            &s(&h5),
+            "--out",
+            &s(&runs),
+            "--set",
+            "model.max_len=1",
+        ]),
+        "model.max_len = 1: must be at least 2",
+    );
+    let left: Vec<_> = std::fs::read_dir(&runs)
+        .map(|d| d.map(|e| e.unwrap().path()).collect())
+        .unwrap_or_default();
+    assert!(left.is_empty(), "no empty run folder: {left:?}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}

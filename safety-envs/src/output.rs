@@ -1,0 +1,420 @@
+//! Output files and locks, the one construction every writer uses (datasets,
+//! eval reports and CSVs, figures, animations, rendered frames).
+//!
+//! - [`write_file`]: checks the path first ([`check_output`]): a path that
+//!   exists is refused unless the caller may replace it ([`Existing::Replace`],
+//!   `--force`), and then only when it is a regular file outside any
+//!   checkpoint folder, never a device, FIFO, symlink or folder. The bytes go
+//!   to a temporary file beside the output, are synced and then published
+//!   in one step (a hard link that fails if the name was taken meanwhile, or
+//!   a rename when replacing), so a full disk or a kill never leaves a
+//!   truncated file under the final name, and the temporary file is removed
+//!   on every failure.
+//! - [`Lock`]: an OS file lock (`flock`, released by the kernel when the
+//!   process dies) holding the owner's pid, so a second process on the same
+//!   run or output is refused with the first's pid.
+
+use std::fs;
+use std::io::{Read, Seek, Write};
+use std::path::{Path, PathBuf};
+
+use thiserror::Error;
+
+/// A path that cannot be written, or a lock held by another process.
+#[derive(Debug, Error)]
+#[error("{path}: {problem}")]
+pub struct OutputError {
+    pub path: PathBuf,
+    pub problem: String,
+}
+
+impl OutputError {
+    fn new(path: &Path, problem: impl Into<String>) -> Self {
+        OutputError {
+            path: path.to_path_buf(),
+            problem: problem.into(),
+        }
+    }
+}
+
+/// What to do when the output path exists.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Existing {
+    /// Refuse (the default of every command).
+    Refuse,
+    /// Replace it, if it is a regular file outside a checkpoint folder
+    /// (`--force`, or a file the program owns, such as a run's own figure).
+    Replace,
+}
+
+impl Existing {
+    /// `--force` given or not.
+    pub fn from_force(force: bool) -> Self {
+        if force {
+            Existing::Replace
+        } else {
+            Existing::Refuse
+        }
+    }
+}
+
+/// What kind of thing a path names, for messages.
+fn kind(ft: &fs::FileType) -> &'static str {
+    use std::os::unix::fs::FileTypeExt;
+    if ft.is_dir() {
+        "a folder"
+    } else if ft.is_symlink() {
+        "a symbolic link"
+    } else if ft.is_block_device() || ft.is_char_device() {
+        "a device"
+    } else if ft.is_fifo() {
+        "a FIFO"
+    } else if ft.is_socket() {
+        "a socket"
+    } else {
+        "a file"
+    }
+}
+
+/// The folder an output goes into (`.` for a bare file name).
+fn parent_of(path: &Path) -> PathBuf {
+    match path.parent() {
+        Some(p) if !p.as_os_str().is_empty() => p.to_path_buf(),
+        _ => PathBuf::from("."),
+    }
+}
+
+/// Checks that `path` can receive a new file, before any long work: its
+/// folder exists and is a folder, and the path is free (or, with
+/// [`Existing::Replace`], a regular file that is not part of a checkpoint).
+pub fn check_output(path: &Path, existing: Existing) -> Result<(), OutputError> {
+    let err = |m: String| Err(OutputError::new(path, m));
+    match fs::symlink_metadata(path) {
+        Ok(meta) => {
+            let ft = meta.file_type();
+            if !ft.is_file() {
+                return err(format!(
+                    "it is {}, not a file this program wrote: choose another path",
+                    kind(&ft)
+                ));
+            }
+            if parent_of(path).join("manifest.json").is_file() {
+                return err(
+                    "it is a file of a checkpoint folder (beside its manifest.json): choose another path"
+                        .into(),
+                );
+            }
+            if existing == Existing::Refuse {
+                return err(
+                    "it exists already: pass --force to replace it, or choose another path".into(),
+                );
+            }
+            Ok(())
+        }
+        Err(e)
+            if matches!(
+                e.kind(),
+                std::io::ErrorKind::NotFound | std::io::ErrorKind::NotADirectory
+            ) =>
+        {
+            check_folder(path)
+        }
+        Err(e) => err(format!("cannot use this path: {e}")),
+    }
+}
+
+/// The folder of `path` exists and is a folder; otherwise names the first
+/// ancestor that is missing or is not a folder.
+fn check_folder(path: &Path) -> Result<(), OutputError> {
+    let parent = parent_of(path);
+    if parent.is_dir() {
+        return Ok(());
+    }
+    // Walk up to the first ancestor that exists.
+    let mut missing = parent.clone();
+    for a in parent.ancestors().skip(1) {
+        let a = if a.as_os_str().is_empty() {
+            Path::new(".")
+        } else {
+            a
+        };
+        match fs::metadata(a) {
+            Ok(m) if m.is_dir() => break,
+            Ok(_) => {
+                return Err(OutputError::new(
+                    path,
+                    format!("{} is a file, not a folder", a.display()),
+                ));
+            }
+            Err(_) => missing = a.to_path_buf(),
+        }
+    }
+    if let Ok(m) = fs::symlink_metadata(&missing)
+        && !m.is_dir()
+    {
+        return Err(OutputError::new(
+            path,
+            format!(
+                "{} is {}, not a folder",
+                missing.display(),
+                kind(&m.file_type())
+            ),
+        ));
+    }
+    Err(OutputError::new(
+        path,
+        format!(
+            "the folder {} does not exist; create it first (mkdir -p {})",
+            parent.display(),
+            parent.display()
+        ),
+    ))
+}
+
+/// The temporary file an output is written to: beside it (same file system,
+/// so publishing is one step), hidden, with the process id and the output's
+/// extension (image writers choose the format by it).
+pub fn temp_path(path: &Path) -> PathBuf {
+    let stem = path
+        .file_stem()
+        .map_or_else(|| "out".into(), |s| s.to_string_lossy().into_owned());
+    let ext = path
+        .extension()
+        .map_or_else(String::new, |e| format!(".{}", e.to_string_lossy()));
+    parent_of(path).join(format!(".{stem}.tmp-{}{ext}", std::process::id()))
+}
+
+/// Writes `path` through `write`, which fills the temporary file it is
+/// given: checked by [`check_output`], synced, then published atomically.
+/// On any failure the temporary file is removed and `path` is untouched.
+pub fn write_file<E: From<OutputError>>(
+    path: &Path,
+    existing: Existing,
+    write: impl FnOnce(&Path) -> Result<(), E>,
+) -> Result<(), E> {
+    check_output(path, existing)?;
+    let tmp = temp_path(path);
+    let _ = fs::remove_file(&tmp);
+    let result = write(&tmp).and_then(|()| publish(&tmp, path, existing).map_err(E::from));
+    if result.is_err() {
+        let _ = fs::remove_file(&tmp);
+    }
+    result
+}
+
+/// [`write_file`] for bytes already in memory.
+pub fn write_bytes(path: &Path, existing: Existing, bytes: &[u8]) -> Result<(), OutputError> {
+    write_file(path, existing, |tmp| {
+        fs::write(tmp, bytes).map_err(|e| OutputError::new(tmp, format!("cannot write: {e}")))
+    })
+}
+
+/// Syncs `tmp` and moves it to `path`; without `Replace`, a hard link that
+/// fails if `path` appeared since the check.
+fn publish(tmp: &Path, path: &Path, existing: Existing) -> Result<(), OutputError> {
+    let sync = fs::File::open(tmp).and_then(|f| f.sync_all());
+    sync.map_err(|e| OutputError::new(tmp, format!("cannot write: {e}")))?;
+    if existing == Existing::Refuse {
+        match fs::hard_link(tmp, path) {
+            Ok(()) => {
+                let _ = fs::remove_file(tmp);
+                return Ok(());
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::AlreadyExists => {
+                return Err(OutputError::new(
+                    path,
+                    "it was created by something else while this command ran: nothing was written \
+                     (pass --force to replace it, or choose another path)",
+                ));
+            }
+            // File systems without hard links: check, then rename.
+            Err(_) => check_output(path, Existing::Refuse)?,
+        }
+    } else {
+        check_output(path, Existing::Replace)?;
+    }
+    fs::rename(tmp, path).map_err(|e| {
+        OutputError::new(
+            path,
+            format!("cannot move {} into place: {e}", tmp.display()),
+        )
+    })
+}
+
+/// An exclusive OS lock on a file, with the owner's pid written in it;
+/// released when dropped or when the process dies.
+#[derive(Debug)]
+pub struct Lock {
+    path: PathBuf,
+    _file: fs::File,
+    remove: bool,
+}
+
+impl Lock {
+    /// Takes the lock at `lock_path`, or says which process holds it.
+    /// `what` names what is locked in the refusal (e.g. `the run RUN`).
+    /// `remove`: delete the lock file when done (a lock beside an output;
+    /// a run keeps its `.lock`).
+    pub fn acquire(lock_path: &Path, what: &str, remove: bool) -> Result<Self, OutputError> {
+        use std::os::unix::fs::MetadataExt;
+        loop {
+            let mut file = fs::OpenOptions::new()
+                .read(true)
+                .write(true)
+                .create(true)
+                .truncate(false)
+                .open(lock_path)
+                .map_err(|e| {
+                    OutputError::new(lock_path, format!("cannot create the lock file: {e}"))
+                })?;
+            match file.try_lock() {
+                Ok(()) => {}
+                Err(fs::TryLockError::WouldBlock) => {
+                    let mut text = String::new();
+                    let _ = file.read_to_string(&mut text);
+                    let pid = text.trim();
+                    let pid = if pid.is_empty() { "unknown" } else { pid };
+                    return Err(OutputError::new(
+                        lock_path,
+                        format!(
+                            "{what} is in use by another icrl process (pid {pid}): wait for it to end or stop it; \
+                             two processes would interleave their files"
+                        ),
+                    ));
+                }
+                Err(fs::TryLockError::Error(e)) => {
+                    return Err(OutputError::new(lock_path, format!("cannot lock: {e}")));
+                }
+            }
+            // A holder that removed the file after we opened it: lock the new one.
+            let same = match (file.metadata(), fs::metadata(lock_path)) {
+                (Ok(a), Ok(b)) => a.ino() == b.ino() && a.dev() == b.dev(),
+                _ => false,
+            };
+            if !same {
+                continue;
+            }
+            let write = file
+                .set_len(0)
+                .and_then(|()| file.rewind())
+                .and_then(|()| writeln!(file, "{}", std::process::id()))
+                .and_then(|()| file.flush());
+            write.map_err(|e| {
+                OutputError::new(lock_path, format!("cannot write the lock file: {e}"))
+            })?;
+            return Ok(Lock {
+                path: lock_path.to_path_buf(),
+                _file: file,
+                remove,
+            });
+        }
+    }
+
+    /// The lock file.
+    pub fn path(&self) -> &Path {
+        &self.path
+    }
+}
+
+impl Drop for Lock {
+    fn drop(&mut self) {
+        if self.remove {
+            // Removed while still held: a waiter re-checks the inode.
+            let _ = fs::remove_file(&self.path);
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn dir(name: &str) -> PathBuf {
+        let d =
+            std::env::temp_dir().join(format!("safety-envs-output-{name}-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&d);
+        fs::create_dir_all(&d).unwrap();
+        d
+    }
+
+    #[test]
+    fn outputs_never_replace_what_is_not_ours() {
+        let d = dir("replace");
+        let f = d.join("a.h5");
+        write_bytes(&f, Existing::Refuse, b"one").unwrap();
+        assert_eq!(fs::read(&f).unwrap(), b"one");
+        let e = write_bytes(&f, Existing::Refuse, b"two")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("exists already") && e.contains("--force"), "{e}");
+        write_bytes(&f, Existing::Replace, b"two").unwrap();
+        assert_eq!(fs::read(&f).unwrap(), b"two");
+        // Not a regular file: refused even with --force; /dev/null untouched.
+        for (p, what) in [
+            (Path::new("/dev/null"), "a device"),
+            (d.as_path(), "a folder"),
+        ] {
+            let e = write_bytes(p, Existing::Replace, b"x")
+                .unwrap_err()
+                .to_string();
+            assert!(e.contains(what), "{e}");
+        }
+        assert!(!fs::metadata("/dev/null").unwrap().is_file());
+        let link = d.join("link");
+        std::os::unix::fs::symlink(&f, &link).unwrap();
+        let e = write_bytes(&link, Existing::Replace, b"x")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("symbolic link"), "{e}");
+        // A checkpoint's file.
+        let ck = d.join("step_1");
+        fs::create_dir(&ck).unwrap();
+        fs::write(ck.join("manifest.json"), "{}").unwrap();
+        fs::write(ck.join("model.safetensors"), "w").unwrap();
+        let e = write_bytes(&ck.join("model.safetensors"), Existing::Replace, b"x")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("checkpoint"), "{e}");
+        assert_eq!(fs::read(ck.join("model.safetensors")).unwrap(), b"w");
+        // A file where a folder should be; a missing folder.
+        let e = write_bytes(&f.join("x.h5"), Existing::Refuse, b"x")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("is a file, not a folder"), "{e}");
+        let e = write_bytes(&d.join("no/x.h5"), Existing::Refuse, b"x")
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("does not exist"), "{e}");
+        // A failing writer leaves nothing, not even its temporary file.
+        let r: Result<(), OutputError> = write_file(&d.join("b.png"), Existing::Refuse, |tmp| {
+            fs::write(tmp, b"half").unwrap();
+            Err(OutputError::new(tmp, "disk full"))
+        });
+        assert!(r.is_err());
+        let names: Vec<_> = fs::read_dir(&d)
+            .unwrap()
+            .map(|e| e.unwrap().file_name())
+            .collect();
+        assert_eq!(names.len(), 3, "{names:?}");
+        fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn a_second_lock_is_refused_with_the_first_pid() {
+        let d = dir("lock");
+        let p = d.join(".lock");
+        let first = Lock::acquire(&p, "the run R", false).unwrap();
+        let e = Lock::acquire(&p, "the run R", false)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains(&format!("pid {}", std::process::id())) && e.contains("the run R"),
+            "{e}"
+        );
+        drop(first);
+        let again = Lock::acquire(&p, "the run R", true).unwrap();
+        drop(again);
+        assert!(!p.exists(), "removed when asked");
+        fs::remove_dir_all(&d).unwrap();
+    }
+}
