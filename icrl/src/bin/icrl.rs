@@ -296,6 +296,11 @@ fn print_learning_summary(env: &str, report: &icrl::eppo::PretrainReport) -> any
             random.episodic_return, random.episodic_cost
         ),
     }
+    // The check is a summary: a failure is reported, the run stays done.
+    match icrl::cli::in_context::check(&report.last_checkpoint, env) {
+        Ok(table) => print!("{table}"),
+        Err(e) => eprintln!("warning: the in-context check did not run: {e}"),
+    }
     println!("checkpoint: {}", report.last_checkpoint.display());
     println!(
         "evaluate it with:\n  {}",

@@ -3,6 +3,8 @@
 //! reports; argument parsing itself stays in `src/bin`.
 //! - [`pretrain`]: `icrl pretrain` for EPPO and AD.
 //! - [`dataset`]: `icrl dataset`, learning histories for AD.
+//! - [`in_context`]: the held-out in-context check an EPPO pretrain ends with.
 
 pub mod dataset;
+pub mod in_context;
 pub mod pretrain;

@@ -32,7 +32,15 @@
 //!   decaying inside each trajectory, scaled per trajectory by a uniform draw.
 //!
 //! The multiplier follows Eq. (7): lambda <- clip(lambda + eta * mean over the
-//! sampled trajectories of max_k (C_k - delta), 0, lambda_max).
+//! sampled trajectories of max_k (C_k - delta), 0, lambda_max); with
+//! `lambda_kp` or `lambda_kd` above 0 it is the PID Lagrangian
+//! (`multiplier.rs`), Eq. (7) being its integral term.
+//!
+//! Levers for the robots' ladder, off in every preset until a run shows they
+//! help (results/eppo_point_ladder): hindsight task relabelling of replayed
+//! trajectories (`relabel_prob`, `relabel.rs`), a dense reward for the
+//! critics only (`dense_reward_coef`; tokens stay sparse) and a scripted first
+//! episode that shows the goal (`scripted_first_episode`).
 //!
 //! Metrics (`metrics.jsonl`, one record per collection round, against
 //! `env_steps`): `episodic_return`, `episodic_cost` (means over the episodes

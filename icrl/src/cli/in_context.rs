@@ -1,0 +1,192 @@
+//! The end of an EPPO `icrl pretrain` (the main job among them): a short
+//! held-out check that the agent learns **in context**, printed beside the
+//! training summary. 16 edge-oriented tasks (the held-out distribution), 3
+//! budgets across the pretraining range, as many episodes as the context
+//! holds (at most 20), frozen parameters; the agent and a uniformly random
+//! policy on the same tasks and budgets. Per episode index k: return, cost
+//! and the revisit rate P(goal at k | goal found before k). About a minute
+//! on Car with the quick preset.
+
+use std::fmt::Write as _;
+use std::path::Path;
+
+use safety_envs::{CmdpEnv, EnvError, EnvName, EnvOptions, Orientation, make_env, spawn_config};
+
+use crate::agent::Conditioning;
+use crate::eval::error::EvalCmdError;
+use crate::eval::load::{LoadedAgent, load_checkpoint};
+use crate::eval::{EvalConfig, EvalResult, evaluate};
+
+/// Held-out tasks of the check.
+const TASKS: usize = 16;
+/// Budgets of the check, spread evenly over the pretraining range.
+const BUDGETS: usize = 3;
+/// Most episodes per trajectory (Table 1's K for Point and Car).
+const MAX_EPISODES: usize = 20;
+/// The check's evaluation seed: fixed, so reruns compare.
+const SEED: u64 = 20_261_201;
+
+/// Per episode index: mean return, mean cost, revisit rate (NaN where no
+/// trajectory had found the goal before k).
+#[derive(Clone, Debug, PartialEq)]
+pub struct PerEpisode {
+    pub ret: Vec<f64>,
+    pub cost: Vec<f64>,
+    pub revisit: Vec<f64>,
+}
+
+impl PerEpisode {
+    /// Averages over every (condition, task) trajectory of `r`.
+    pub fn of(r: &EvalResult) -> Self {
+        Self::from_parts(r.episodes, &r.returns, &r.costs, &r.reached_goal)
+    }
+
+    /// The same from `[condition][task][episode]` returns, costs and goals.
+    pub fn from_parts(
+        k_n: usize,
+        returns: &[Vec<Vec<f32>>],
+        costs: &[Vec<Vec<f32>>],
+        reached_goal: &[Vec<Vec<bool>>],
+    ) -> Self {
+        let trajectories = || {
+            returns
+                .iter()
+                .zip(costs)
+                .zip(reached_goal)
+                .flat_map(|((ret, cost), goal)| ret.iter().zip(cost).zip(goal))
+        };
+        let (mut ret, mut cost) = (vec![0.0; k_n], vec![0.0; k_n]);
+        let (mut revisits, mut found_before) = (vec![0usize; k_n], vec![0usize; k_n]);
+        let mut n = 0usize;
+        for ((rets, costs), goals) in trajectories() {
+            n += 1;
+            let mut seen = false;
+            for k in 0..k_n {
+                ret[k] += f64::from(rets[k]);
+                cost[k] += f64::from(costs[k]);
+                if seen {
+                    found_before[k] += 1;
+                    revisits[k] += usize::from(goals[k]);
+                }
+                seen |= goals[k];
+            }
+        }
+        let n = n.max(1) as f64;
+        PerEpisode {
+            ret: ret.iter().map(|x| x / n).collect(),
+            cost: cost.iter().map(|x| x / n).collect(),
+            revisit: revisits
+                .iter()
+                .zip(&found_before)
+                .map(|(&r, &f)| {
+                    if f == 0 {
+                        f64::NAN
+                    } else {
+                        r as f64 / f as f64
+                    }
+                })
+                .collect(),
+        }
+    }
+}
+
+/// Runs the check on `checkpoint` and returns the table to print.
+pub fn check(checkpoint: &Path, env: EnvName) -> Result<String, EvalCmdError> {
+    let mut agent = load_checkpoint(checkpoint, env)?;
+    let env_options = EnvOptions {
+        max_episode_steps: agent.context.map(|c| c.max_episode_steps),
+        physics_steps_per_action: agent.physics_steps_per_action,
+    };
+    let make = move || -> Result<Box<dyn CmdpEnv>, EnvError> { make_env(env, &env_options) };
+    let probe = make()?;
+    let t_max = probe.max_episode_steps();
+    let episodes = agent
+        .context
+        .map_or(MAX_EPISODES, |c| c.episodes(t_max))
+        .min(MAX_EPISODES);
+    let range = agent
+        .budget_range
+        .ok_or_else(|| EvalCmdError::Options("the checkpoint records no budget range".into()))?;
+    let budgets: Vec<f32> = (0..BUDGETS)
+        .map(|i| range.low + (range.high - range.low) * (i as f32 + 0.5) / BUDGETS as f32)
+        .collect();
+    let cfg = EvalConfig {
+        tasks: TASKS,
+        episodes,
+        conditions: budgets
+            .iter()
+            .map(|&ctg| Conditioning::Budget { ctg })
+            .collect(),
+        eval_seed: SEED,
+        batch: TASKS * BUDGETS,
+        threads: 1,
+        greedy: false,
+        pretrain_tasks: agent.pretrain_tasks.clone(),
+        record: None,
+        torch_seed: Some(SEED),
+        orientation: Orientation::Edge,
+    };
+    let spawn = spawn_config(env);
+    let trained = evaluate(agent.agent.as_mut(), &make, &spawn, &cfg, &mut |_| {})?;
+    let mut random = LoadedAgent::random(probe.action_space(), SEED);
+    let baseline = evaluate(random.agent.as_mut(), &make, &spawn, &cfg, &mut |_| {})?;
+    Ok(table(
+        &PerEpisode::of(&trained),
+        &PerEpisode::of(&baseline),
+        &budgets,
+    ))
+}
+
+/// The printed table: one row per episode index.
+fn table(agent: &PerEpisode, random: &PerEpisode, budgets: &[f32]) -> String {
+    let mut s = String::new();
+    let budgets: Vec<String> = budgets.iter().map(|b| format!("{b:.1}")).collect();
+    let _ = writeln!(
+        s,
+        "in-context check: {TASKS} held-out edge tasks x budgets {}, K = {}, frozen; the agent (random policy):",
+        budgets.join(", "),
+        agent.ret.len()
+    );
+    let _ = writeln!(s, "   k  return          cost            revisit");
+    let rate = |x: f64| {
+        if x.is_nan() {
+            "   -".to_string()
+        } else {
+            format!("{x:.2}")
+        }
+    };
+    for k in 0..agent.ret.len() {
+        let _ = writeln!(
+            s,
+            "  {:>2}  {:.3} ({:.3})   {:>5.2} ({:>5.2})   {} ({})",
+            k + 1,
+            agent.ret[k],
+            random.ret[k],
+            agent.cost[k],
+            random.cost[k],
+            rate(agent.revisit[k]),
+            rate(random.revisit[k]),
+        );
+    }
+    s
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn per_episode_rates_count_returns_costs_and_revisits() {
+        // Two trajectories: found at k = 1 then again at k = 3; never found.
+        let p = PerEpisode::from_parts(
+            3,
+            &[vec![vec![1.0, 0.0, 1.0], vec![0.0, 0.0, 0.0]]],
+            &[vec![vec![2.0, 1.0, 0.0], vec![4.0, 3.0, 2.0]]],
+            &[vec![vec![true, false, true], vec![false, false, false]]],
+        );
+        assert_eq!(p.ret, [0.5, 0.0, 0.5]);
+        assert_eq!(p.cost, [3.0, 2.0, 1.0]);
+        assert!(p.revisit[0].is_nan(), "nothing found before k = 1");
+        assert_eq!(&p.revisit[1..], [0.0, 1.0]);
+    }
+}
