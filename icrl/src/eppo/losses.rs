@@ -277,11 +277,18 @@ fn continuous_actor(
 
 /// Eq. (7): lambda <- clip(lambda + eta * mean_j max_k (C_jk - delta_j), 0, lambda_max).
 pub fn lambda_update(lambda: f64, max_violations: &[f32], eta: f64, lambda_max: f64) -> f64 {
-    if max_violations.is_empty() {
-        return lambda;
+    match mean_violation(max_violations) {
+        Some(g) => (lambda + eta * g).clamp(0.0, lambda_max),
+        None => lambda,
     }
-    let g = max_violations.iter().map(|&x| f64::from(x)).sum::<f64>() / max_violations.len() as f64;
-    (lambda + eta * g).clamp(0.0, lambda_max)
+}
+
+/// mean_j max_k (C_jk - delta_j), Eq. (7)'s violation; `None` for no trajectory.
+pub(super) fn mean_violation(max_violations: &[f32]) -> Option<f64> {
+    if max_violations.is_empty() {
+        return None;
+    }
+    Some(max_violations.iter().map(|&x| f64::from(x)).sum::<f64>() / max_violations.len() as f64)
 }
 
 /// target <- (1 - tau) target + tau online, for every variable by name.

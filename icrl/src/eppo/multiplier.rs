@@ -14,7 +14,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::losses::lambda_update;
+use super::losses::mean_violation;
 
 /// The gains and limits, read from the config.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -55,12 +55,10 @@ impl Multiplier {
     /// One step on a batch's per-trajectory max_k (C_k - delta); an empty
     /// batch changes nothing.
     pub fn update(&mut self, max_violations: &[f32], gains: &Gains) {
-        if max_violations.is_empty() {
+        let Some(g) = mean_violation(max_violations) else {
             return;
-        }
-        let g =
-            max_violations.iter().map(|&x| f64::from(x)).sum::<f64>() / max_violations.len() as f64;
-        self.integral = lambda_update(self.integral, max_violations, gains.ki, gains.max);
+        };
+        self.integral = (self.integral + gains.ki * g).clamp(0.0, gains.max);
         let previous = self.smoothed;
         self.smoothed = gains.smoothing * self.smoothed + (1.0 - gains.smoothing) * g;
         let rise = (self.smoothed - previous).max(0.0);
