@@ -168,7 +168,10 @@ impl Learner {
             let ctg_now = acting.observe(&input);
             let policy = acting.policy(&self.net, &input)?;
             let eps: Vec<f64> = (0..n)
-                .map(|i| exploration.at(trajs[i].len(), horizons[i], eps_scale[i]))
+                .map(|i| {
+                    let found = trajs[i].episode_success.contains(&true);
+                    exploration.at(trajs[i].len(), horizons[i], eps_scale[i], found)
+                })
                 .collect();
             let (mut net_actions, mut env_actions) =
                 sample_actions(&policy, &self.spec, &eps, false, &mut self.rng);

@@ -136,6 +136,12 @@ pub struct EppoConfig {
     /// Epsilon at a trajectory's last step once annealed (absent: `eps_end`).
     #[serde(default)]
     pub eps_last_end: Option<f64>,
+    /// Epsilon's ceiling for the rest of a trajectory once it has reached its
+    /// goal. Noise keyed to the step index alone cannot tell "still
+    /// searching" from "found it, go back": late noise keeps search alive and
+    /// costs revisits (issue 18's runs A and F). Absent: the schedule throughout.
+    #[serde(default)]
+    pub eps_after_success: Option<f64>,
     /// Scale each trajectory's epsilon by its own uniform draw in [0, 1]
     /// (AMAGO's `randomize_eps`): the replay then holds the whole range from
     /// near-on-policy to noisy trajectories.
@@ -177,6 +183,43 @@ pub struct EppoConfig {
     /// everything at evaluation, stay sparse. 0: off (the paper).
     #[serde(default)]
     pub dense_reward_coef: f64,
+    /// A bonus for the critics during pretraining only, after HyperX's
+    /// meta-training exploration bonuses: a step that arrives in a cell this
+    /// trajectory has not visited earns this much reward, until the
+    /// trajectory's first success. Before the goal is found any unseen cell
+    /// may hold it; after, search is worth nothing, so revisits are not
+    /// taxed. The tokens stay as collected. 0: off (the paper).
+    #[serde(default)]
+    pub novelty_bonus: f64,
+    /// Side of a novelty cell in observation units (the position at
+    /// observation indices 0 and 1): 1 is one SafeDarkRoom cell.
+    #[serde(default = "default_novelty_cell")]
+    pub novelty_cell: f64,
+    /// Updates over which `novelty_bonus` anneals linearly to 0 (0: constant).
+    #[serde(default)]
+    pub novelty_anneal_updates: u64,
+    /// Which steps the actor's cost penalty lambda x Qc weighs (issue 18).
+    #[serde(default)]
+    pub penalty: PenaltyForm,
+}
+
+/// Where the actor pays lambda x reward_scale x Qc.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum PenaltyForm {
+    /// Algorithm 1: on every step of an episode that, in hindsight, ended over
+    /// the budget (v_e), a flag the agent cannot see when it acts.
+    #[default]
+    Hindsight,
+    /// At decision time: on the predicted remaining cost beyond the remaining
+    /// budget, max(0, Qc(h_t, a) - CTG_t). Zero while the cost critic expects
+    /// the episode to stay within its budget, whatever happened elsewhere.
+    Hinge,
+}
+
+/// Absent from a config: one SafeDarkRoom cell.
+fn default_novelty_cell() -> f64 {
+    1.0
 }
 
 /// Absent from a config: the PID Lagrangian's usual smoothing.
@@ -289,6 +332,8 @@ impl EppoConfig {
                 self.dense_reward_coef,
                 Range::NON_NEGATIVE,
             ),
+            ("novelty_bonus", self.novelty_bonus, Range::NON_NEGATIVE),
+            ("novelty_cell", self.novelty_cell, Range::POSITIVE),
         ])
         .or_else(bad)?;
         if self.k_min == 0 || self.k_min > self.k_max {
@@ -321,6 +366,7 @@ impl EppoConfig {
             ("eps_end", Some(self.eps_end)),
             ("eps_last_start", self.eps_last_start),
             ("eps_last_end", self.eps_last_end),
+            ("eps_after_success", self.eps_after_success),
         ] {
             if let Some(v) = v
                 && !(0.0..=1.0).contains(&v)
@@ -346,14 +392,21 @@ pub struct Exploration {
     pub first: f64,
     /// Epsilon at its last possible step (K x t_max).
     pub last: f64,
+    /// The ceiling once the trajectory has found its goal (`eps_after_success`).
+    pub after_success: Option<f64>,
 }
 
 impl Exploration {
     /// Epsilon at step `t` of a trajectory of at most `horizon` steps, scaled
-    /// by the trajectory's own draw `scale` (1 without `eps_random_scale`).
-    pub fn at(&self, t: usize, horizon: usize, scale: f64) -> f64 {
+    /// by the trajectory's own draw `scale` (1 without `eps_random_scale`),
+    /// capped by `after_success` once the trajectory has `found` its goal.
+    pub fn at(&self, t: usize, horizon: usize, scale: f64, found: bool) -> f64 {
         let progress = (t as f64 / horizon.max(1) as f64).min(1.0);
-        scale * (self.first + (self.last - self.first) * progress)
+        let scheduled = scale * (self.first + (self.last - self.first) * progress);
+        match self.after_success {
+            Some(ceiling) if found => scheduled.min(ceiling),
+            _ => scheduled,
+        }
     }
 }
 
@@ -369,6 +422,15 @@ impl EppoConfig {
                 self.eps_last_start.unwrap_or(self.eps_start),
                 self.eps_last_end.unwrap_or(self.eps_end),
             ),
+            after_success: self.eps_after_success,
+        }
+    }
+
+    /// The novelty bonus's weight after `updates` updates (annealed).
+    pub fn novelty_weight(&self, updates: u64) -> f64 {
+        match self.novelty_anneal_updates {
+            0 => self.novelty_bonus,
+            n => self.novelty_bonus * (1.0 - updates as f64 / n as f64).max(0.0),
         }
     }
 

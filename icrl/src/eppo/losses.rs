@@ -5,7 +5,7 @@
 use serde::Serialize;
 use tch::{Kind, Tensor, nn};
 
-use super::config::{EppoConfig, EppoError};
+use super::config::{EppoConfig, EppoError, PenaltyForm};
 use super::net::{EppoNet, tanh_gaussian_log_prob, tanh_gaussian_sample};
 use super::replay::Batch;
 
@@ -204,7 +204,13 @@ fn discrete_actor(
     let q = q_all.detach().amin(2, false); // (B, L, A)
     let qc = qc_all.detach().mean_dim(2, false, Kind::Float); // (B, L, A)
     let penalty = lambda * cfg.reward_scale;
-    let per_action = q.neg() + qc * batch.violated.unsqueeze(-1) * penalty; // (B, L, A)
+    let paid = penalised_cost(
+        &qc,
+        &batch.violated.unsqueeze(-1),
+        &batch.ctg.unsqueeze(-1),
+        cfg.penalty,
+    ); // (B, L, A)
+    let per_action = q.neg() + paid * penalty; // (B, L, A)
     let entropy = (&pi * &logp).sum_dim_intlist(-1, false, Kind::Float).neg(); // (B, L)
     let mut objective =
         (&pi * per_action).sum_dim_intlist(-1, false, Kind::Float) - &entropy * cfg.entropy_coef;
@@ -254,7 +260,8 @@ fn continuous_actor(
         .critic_sa(&net.cost_critic, &hd, &a_hat, true)
         .mean_dim(-1, false, Kind::Float); // (B, L)
     let penalty = lambda * cfg.reward_scale;
-    let mut objective = q.neg() + qc * &batch.violated * penalty + &log_prob * cfg.entropy_coef;
+    let paid = penalised_cost(&qc, &batch.violated, &batch.ctg, cfg.penalty); // (B, L)
+    let mut objective = q.neg() + paid * penalty + &log_prob * cfg.entropy_coef;
     if cfg.bc_coef > 0.0 {
         // Filtered BC: A = Q(a_t) - Q(a_hat) (one sample of E_pi),
         // mean over critics, no gradient anywhere in the filter.
@@ -272,6 +279,22 @@ fn continuous_actor(
         policy_loss: masked_mean(&objective, &batch.valid),
         entropy: masked_mean(&log_prob.neg(), &batch.valid),
         log_std_mean,
+    }
+}
+
+/// The cost the actor is charged for, before lambda x reward_scale:
+/// Qc on the steps of episodes that ended over budget (`violated` 1), or,
+/// for the hinge, max(0, Qc - CTG), the predicted remaining cost past the
+/// remaining budget. `violated` and `ctg` broadcast against `qc`.
+pub(super) fn penalised_cost(
+    qc: &Tensor,
+    violated: &Tensor,
+    ctg: &Tensor,
+    form: PenaltyForm,
+) -> Tensor {
+    match form {
+        PenaltyForm::Hindsight => qc * violated,
+        PenaltyForm::Hinge => (qc - ctg).relu(),
     }
 }
 

@@ -42,6 +42,14 @@
 //! critics only (`dense_reward_coef`; tokens stay sparse) and a scripted first
 //! episode that shows the goal (`scripted_first_episode`).
 //!
+//! Levers for the budget ladder (results/eppo_darkroom_budget), likewise off
+//! until measured: behaviour noise capped once a trajectory has found its goal
+//! (`eps_after_success`), a critic-only bonus for cells new to the trajectory
+//! until its first success (`novelty_bonus`, annealed over
+//! `novelty_anneal_updates`), and the actor's penalty at decision time,
+//! max(0, Qc - CTG_t), instead of Algorithm 1's hindsight flag
+//! (`penalty = "hinge"`).
+//!
 //! Metrics (`metrics.jsonl`, one record per collection round, against
 //! `env_steps`): `episodic_return`, `episodic_cost` (means over the episodes
 //! collected in the round), `first_episode_return`, `last_episode_return`,
@@ -78,7 +86,7 @@ use safety_envs::{EnvName, EnvOptions, GoalRule, VecEnv, make_env};
 pub use agent::EppoAgent;
 pub use checkpoint::recorded_pretrain_tasks;
 pub use collect::{RoundStats, search_rates};
-pub use config::{EppoConfig, EppoError, Exploration, memory_estimate, parse_device};
+pub use config::{EppoConfig, EppoError, Exploration, PenaltyForm, memory_estimate, parse_device};
 pub use losses::{UpdateStats, lambda_update};
 pub use multiplier::{Gains, Multiplier};
 pub use net::{EppoNet, NetSpec};
@@ -204,7 +212,15 @@ impl Learner {
             .zip(&relabelled)
             .map(|(&t, r)| r.as_ref().unwrap_or(t))
             .collect();
-        let mut batch = make_batch(&trajs, &self.cfg, &self.spec, &mut self.rng, self.device);
+        let novelty = self.cfg.novelty_weight(self.updates) as f32;
+        let mut batch = make_batch(
+            &trajs,
+            &self.cfg,
+            &self.spec,
+            novelty,
+            &mut self.rng,
+            self.device,
+        );
         // Eq. (7) prices the costs the policy really paid: a relabelled
         // episode cut at its new goal holds only part of them.
         batch.max_violation = sampled.iter().map(|t| t.max_violation()).collect();

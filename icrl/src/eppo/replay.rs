@@ -3,7 +3,7 @@
 //! evaluation) and the masks that keep `terminated` and `truncated` apart all
 //! the way into the TD targets.
 
-use std::collections::VecDeque;
+use std::collections::{HashSet, VecDeque};
 
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -162,6 +162,8 @@ pub(super) struct Batch {
     pub(super) costs: Tensor,
     /// (B, L) 1 where the step's episode exceeded the budget (v_e).
     pub(super) violated: Tensor,
+    /// (B, L) the remaining budget CTG_t when the step was taken (unscaled).
+    pub(super) ctg: Tensor,
     /// (B, L) 1 on real (not padded) steps: the actor loss.
     pub(super) valid: Tensor,
     /// (B, L) 1 where a TD target exists for the step: the critic losses.
@@ -191,10 +193,36 @@ fn dense_reward(t: &Trajectory, step: usize, spec: &NetSpec, cfg: &EppoConfig) -
     cfg.dense_reward_coef as f32 * progress
 }
 
+/// For each step of `t`, 1 where it arrives in a cell (side `cell`, on the
+/// position at observation indices 0 and 1) that the trajectory has not been
+/// in before, episode starts included, up to its first success; 0 elsewhere
+/// and after it. The novelty bonus's indicator ([`EppoConfig::novelty_bonus`]).
+pub(super) fn novel_arrivals(t: &Trajectory, obs_dim: usize, cell: f64) -> Vec<f32> {
+    let key = |o: &[f32]| {
+        let at = |x: f32| (f64::from(x) / cell).round() as i64;
+        (at(o[0]), at(o[1]))
+    };
+    let mut seen = HashSet::new();
+    let mut novel = vec![0f32; t.len()];
+    for (step, flag) in novel.iter_mut().enumerate() {
+        seen.insert(key(&t.obs[step * obs_dim..]));
+        if seen.insert(key(&t.next_obs[step * obs_dim..])) {
+            *flag = 1.0;
+        }
+        if t.rewards[step] > 0.0 {
+            break;
+        }
+    }
+    novel
+}
+
+/// A batch of windows of `trajs`; the critics' rewards carry the novelty
+/// bonus at weight `novelty` (this update's annealed value).
 pub(super) fn make_batch(
     trajs: &[&Trajectory],
     cfg: &EppoConfig,
     spec: &NetSpec,
+    novelty: f32,
     rng: &mut ChaCha8Rng,
     device: Device,
 ) -> Batch {
@@ -209,6 +237,7 @@ pub(super) fn make_batch(
     let mut rew = vec![0f32; b * l];
     let mut cost = vec![0f32; b * l];
     let mut viol = vec![0f32; b * l];
+    let mut ctg = vec![0f32; b * l];
     let mut valid = vec![0f32; b * l];
     let mut td_valid = vec![0f32; b * l];
     let mut boot = vec![0f32; b * l];
@@ -217,6 +246,11 @@ pub(super) fn make_batch(
     let zeros_o = vec![0f32; spec.obs_dim];
     for (j, (t, &(s, len))) in trajs.iter().zip(&windows).enumerate() {
         let violated: Vec<bool> = t.episode_costs.iter().map(|&c| c > t.budget).collect();
+        let novel = if novelty > 0.0 {
+            novel_arrivals(t, spec.obs_dim, cfg.novelty_cell)
+        } else {
+            vec![0.0; t.len()]
+        };
         for i in 0..l {
             let k = j * l + i;
             if i >= len {
@@ -264,8 +298,10 @@ pub(super) fn make_batch(
             );
             acts_f.extend_from_slice(&t.actions[step * a..(step + 1) * a]);
             acts_i.push(t.action_idx.get(step).copied().unwrap_or(0));
-            rew[k] = (t.rewards[step] + dense_reward(t, step, spec, cfg)) * cfg.reward_scale as f32;
+            let shaping = dense_reward(t, step, spec, cfg) + novelty * novel[step];
+            rew[k] = (t.rewards[step] + shaping) * cfg.reward_scale as f32;
             cost[k] = t.costs[step];
+            ctg[k] = t.ctg[step];
             viol[k] = if violated[t.episode[step] as usize] {
                 1.0
             } else {
@@ -294,6 +330,7 @@ pub(super) fn make_batch(
         rewards: f(&rew),
         costs: f(&cost),
         violated: f(&viol),
+        ctg: f(&ctg),
         valid: f(&valid),
         td_valid: f(&td_valid),
         bootstrap: f(&boot),

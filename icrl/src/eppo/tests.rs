@@ -8,9 +8,9 @@ use tch::{Device, Kind, Tensor};
 use safety_envs::{EnvName, EnvOptions, Orientation, VecEnv, make_env, sample_task, spawn_config};
 
 use super::collect::{Acting, EnvActions, Policy, sample_actions};
-use super::losses::{losses, n_step_targets};
+use super::losses::{losses, n_step_targets, penalised_cost};
 use super::net::{tanh_gaussian_log_prob, tanh_gaussian_sample};
-use super::replay::{Batch, make_batch};
+use super::replay::{Batch, make_batch, novel_arrivals};
 use super::*;
 use crate::agent::{Actions, Conditioning, InContextAgent, StepInput};
 use crate::model::Positions;
@@ -251,7 +251,7 @@ fn the_dense_critic_reward_shapes_targets_and_leaves_tokens_sparse() {
     };
     let batch = |cfg: &EppoConfig| {
         let mut rng = ChaCha8Rng::seed_from_u64(1);
-        make_batch(&trajs, cfg, &learner.spec, &mut rng, Device::Cpu)
+        make_batch(&trajs, cfg, &learner.spec, 0.0, &mut rng, Device::Cpu)
     };
     let (sparse, dense) = (batch(&sparse_cfg), batch(&dense_cfg));
     assert_eq!(
@@ -312,7 +312,7 @@ fn the_goal_enters_the_context_with_its_reward() {
     let norm = |x: f32| 2.0 * x / 8.0 - 1.0; // 9x9 grid: [0, 8] -> [-1, 1]
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     for t in &learner.replay.trajectories {
-        let batch = make_batch(&[t], &cfg, &learner.spec, &mut rng, Device::Cpu);
+        let batch = make_batch(&[t], &cfg, &learner.spec, 0.0, &mut rng, Device::Cpu);
         let tok = to_vec(&batch.tokens);
         let d = learner.spec.token_dim();
         for s in (0..t.len() - 1).filter(|&s| t.terminated[s]) {
@@ -349,10 +349,10 @@ fn exploration_is_bilevel() {
         "annealed, then held"
     );
     // Inside a trajectory: linear from the first to the last step, scaled.
-    assert!((end.at(0, 100, 1.0) - 0.4).abs() < 1e-12);
-    assert!((end.at(50, 100, 1.0) - 0.2).abs() < 1e-12);
-    assert!(end.at(100, 100, 1.0).abs() < 1e-12);
-    assert!((end.at(0, 100, 0.5) - 0.2).abs() < 1e-12);
+    assert!((end.at(0, 100, 1.0, false) - 0.4).abs() < 1e-12);
+    assert!((end.at(50, 100, 1.0, false) - 0.2).abs() < 1e-12);
+    assert!(end.at(100, 100, 1.0, false).abs() < 1e-12);
+    assert!((end.at(0, 100, 0.5, false) - 0.2).abs() < 1e-12);
     // Without the last-step values, epsilon is flat inside a trajectory.
     cfg.eps_last_start = None;
     cfg.eps_last_end = None;
@@ -367,6 +367,122 @@ fn exploration_is_bilevel() {
             .to_string()
             .contains("eps_last_end")
     );
+}
+
+#[test]
+fn noise_drops_to_its_ceiling_once_the_goal_is_found() {
+    let mut cfg = tiny();
+    cfg.eps_start = 0.6;
+    cfg.eps_end = 0.6;
+    cfg.eps_after_success = Some(0.5);
+    let e = cfg.exploration(0);
+    assert_eq!(
+        e.at(0, 100, 1.0, false),
+        0.6,
+        "still searching: the schedule"
+    );
+    assert_eq!(e.at(0, 100, 1.0, true), 0.5, "found: the ceiling");
+    assert_eq!(e.at(0, 100, 0.5, true), 0.3, "a ceiling, not a floor");
+    cfg.eps_after_success = None;
+    assert_eq!(cfg.exploration(0).at(0, 100, 1.0, true), 0.6);
+    cfg.eps_after_success = Some(1.5);
+    assert!(
+        cfg.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("eps_after_success")
+    );
+}
+
+/// A SafeDarkRoom-like trajectory over cells (row, col): episode 0 walks
+/// (4,4) -> (4,5) -> (4,4) -> (3,4); episode 1 from (4,4) -> (4,5) -> (3,5)
+/// reaches the goal there, then (4,4) -> (5,4) after it.
+fn cell_walk() -> Trajectory {
+    let cells: [[f32; 2]; 8] = [
+        [4.0, 4.0],
+        [4.0, 5.0],
+        [4.0, 4.0],
+        [4.0, 4.0],
+        [4.0, 5.0],
+        [4.0, 4.0],
+        [4.0, 4.0],
+        [4.0, 4.0],
+    ];
+    let next: [[f32; 2]; 8] = [
+        [4.0, 5.0],
+        [4.0, 4.0],
+        [3.0, 4.0],
+        [4.0, 5.0],
+        [3.0, 5.0],
+        [5.0, 4.0],
+        [5.0, 4.0],
+        [3.0, 3.0],
+    ];
+    let n = cells.len();
+    Trajectory {
+        budget: 1.0,
+        goal: [3.0, 5.0],
+        obs: cells.concat(),
+        next_obs: next.concat(),
+        actions: vec![0.0; 5 * n],
+        action_idx: vec![0; n],
+        rewards: vec![0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0],
+        costs: vec![0.0; n],
+        ctg: vec![1.0; n],
+        start: vec![true, false, false, true, false, true, false, false],
+        terminated: vec![false, false, false, false, true, false, false, false],
+        truncated: vec![false, false, true, false, false, false, false, true],
+        episode: vec![0, 0, 0, 1, 1, 2, 2, 2],
+        episode_returns: vec![0.0, 1.0, 0.0],
+        episode_costs: vec![0.0; 3],
+        episode_success: vec![false, true, false],
+    }
+}
+
+#[test]
+fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
+    let t = cell_walk();
+    assert_eq!(
+        novel_arrivals(&t, 2, 1.0),
+        // new (4,5); seen (4,4); new (3,4); seen (4,5); new (3,5), the goal;
+        // nothing after the first success, new cells included.
+        vec![1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0]
+    );
+    // Coarser cells (side 2) hold (3,4) with (4,4) and (3,5) with (4,5).
+    assert_eq!(
+        novel_arrivals(&t, 2, 2.0),
+        vec![1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    );
+    // Into the critics' rewards only, at the weight given; tokens unchanged.
+    let spec = NetSpec {
+        obs_dim: 2,
+        obs_low: vec![0.0; 2],
+        obs_high: vec![8.0; 2],
+        n_actions: Some(5),
+        act_low: vec![],
+        act_high: vec![],
+    };
+    let cfg = tiny();
+    let batch = |w: f32| {
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        make_batch(&[&t], &cfg, &spec, w, &mut rng, Device::Cpu)
+    };
+    let (plain, bonus) = (batch(0.0), batch(0.1));
+    assert_eq!(to_vec(&plain.tokens), to_vec(&bonus.tokens));
+    let diff: Vec<f32> = to_vec(&bonus.rewards)
+        .iter()
+        .zip(to_vec(&plain.rewards))
+        .map(|(b, p)| ((b - p) / cfg.reward_scale as f32 * 100.0).round() / 100.0)
+        .collect();
+    assert_eq!(diff, vec![0.1, 0.0, 0.1, 0.0, 0.1, 0.0, 0.0, 0.0]);
+    // Annealed linearly to zero, then held there.
+    let mut cfg = tiny();
+    cfg.novelty_bonus = 0.2;
+    assert_eq!(cfg.novelty_weight(500), 0.2, "no anneal: constant");
+    cfg.novelty_anneal_updates = 1000;
+    assert!((cfg.novelty_weight(500) - 0.1).abs() < 1e-12);
+    assert_eq!(cfg.novelty_weight(1000), 0.0);
+    assert_eq!(cfg.novelty_weight(5000), 0.0);
 }
 
 #[test]
@@ -389,7 +505,14 @@ fn critic_losses_fall_on_a_fixed_batch() {
     learner.collect(&mut venv).unwrap();
     let trajs: Vec<&Trajectory> = learner.replay.trajectories.iter().collect();
     let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let batch = make_batch(&trajs, &learner.cfg, &learner.spec, &mut rng, Device::Cpu);
+    let batch = make_batch(
+        &trajs,
+        &learner.cfg,
+        &learner.spec,
+        0.0,
+        &mut rng,
+        Device::Cpu,
+    );
     let mut first = None;
     let mut last = (0.0, 0.0);
     for _ in 0..300 {
@@ -500,7 +623,14 @@ fn violation_flag_gates_the_cost_penalty() {
     learner.collect(&mut venv).unwrap();
     let trajs: Vec<&Trajectory> = learner.replay.trajectories.iter().collect();
     let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let mut batch = make_batch(&trajs, &learner.cfg, &learner.spec, &mut rng, Device::Cpu);
+    let mut batch = make_batch(
+        &trajs,
+        &learner.cfg,
+        &learner.spec,
+        0.0,
+        &mut rng,
+        Device::Cpu,
+    );
     let policy_loss = |batch: &Batch, lambda: f64| {
         tch::manual_seed(0);
         let (_, _, lp, ..) =
@@ -519,6 +649,63 @@ fn violation_flag_gates_the_cost_penalty() {
     assert!(
         (viol_5 - viol_0).abs() > 1e-4,
         "violated episodes pay lambda * Qc"
+    );
+}
+
+#[test]
+fn the_hinge_charges_predicted_cost_past_the_remaining_budget_only() {
+    let row = |v: &[f32]| Tensor::from_slice(v).view([1, v.len() as i64]);
+    let qc = row(&[0.5, 2.0, 3.0, 1.0]);
+    let ctg = row(&[1.0, 1.0, 1.0, 0.0]);
+    let violated = row(&[1.0, 0.0, 0.0, 1.0]);
+    assert_eq!(
+        to_vec(&penalised_cost(&qc, &violated, &ctg, PenaltyForm::Hinge)),
+        vec![0.0, 1.0, 2.0, 1.0],
+        "zero within the budget, growing past it, blind to the flag"
+    );
+    assert_eq!(
+        to_vec(&penalised_cost(
+            &qc,
+            &violated,
+            &ctg,
+            PenaltyForm::Hindsight
+        )),
+        vec![0.5, 0.0, 0.0, 1.0],
+        "Algorithm 1: Qc where the episode ended over budget"
+    );
+    // Through the whole actor loss: with the hinge, lambda bites only when
+    // the cost critic predicts more than the remaining budget.
+    let (mut learner, mut venv) = tiny_learner(2);
+    learner.cfg.penalty = PenaltyForm::Hinge;
+    learner.collect(&mut venv).unwrap();
+    let trajs: Vec<&Trajectory> = learner.replay.trajectories.iter().collect();
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let mut batch = make_batch(
+        &trajs,
+        &learner.cfg,
+        &learner.spec,
+        0.0,
+        &mut rng,
+        Device::Cpu,
+    );
+    let policy_loss = |batch: &Batch, lambda: f64| {
+        tch::manual_seed(0);
+        let (_, _, lp, ..) =
+            losses(&learner.net, &learner.target, batch, lambda, &learner.cfg).unwrap();
+        lp.double_value(&[])
+    };
+    batch.ctg = batch.valid.ones_like() * 1e6;
+    let (rich_0, rich_5) = (policy_loss(&batch, 0.0), policy_loss(&batch, 5.0));
+    assert!((rich_0 - rich_5).abs() < 1e-4, "ample budget: no penalty");
+    batch.violated = batch.valid.ones_like();
+    assert!(
+        (policy_loss(&batch, 5.0) - rich_5).abs() < 1e-4,
+        "the hindsight flag plays no part"
+    );
+    batch.ctg = batch.valid.ones_like() * -1e3;
+    assert!(
+        (policy_loss(&batch, 5.0) - rich_0).abs() > 1e-4,
+        "a spent budget: every predicted cost is charged"
     );
 }
 
@@ -556,7 +743,7 @@ fn terminated_and_truncated_reach_the_targets_apart() {
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let mut across = cfg.clone();
     across.bootstrap_across_episodes = true;
-    let b = make_batch(&[&t], &across, &spec, &mut rng, Device::Cpu);
+    let b = make_batch(&[&t], &across, &spec, 0.0, &mut rng, Device::Cpu);
     assert_eq!(to_vec(&b.bootstrap), vec![1.0, 1.0, 1.0, 0.0]);
     // The cost's target stops at every episode end: episode 0's costs
     // are not charged with episode 1's.
@@ -567,9 +754,10 @@ fn terminated_and_truncated_reach_the_targets_apart() {
         vec![1.0, 1.0, 0.0, 0.0],
         "v_e per episode: 2 > 1, 0 <= 1"
     );
+    assert_eq!(to_vec(&b.ctg), t.ctg, "CTG_t as recorded, unscaled");
     let mut within = cfg;
     within.bootstrap_across_episodes = false;
-    let b = make_batch(&[&t], &within, &spec, &mut rng, Device::Cpu);
+    let b = make_batch(&[&t], &within, &spec, 0.0, &mut rng, Device::Cpu);
     // Truncated: no target (its final state is not a token); terminated: r alone.
     assert_eq!(to_vec(&b.td_valid), vec![1.0, 0.0, 1.0, 1.0]);
     assert_eq!(to_vec(&b.bootstrap), vec![1.0, 0.0, 1.0, 0.0]);
@@ -598,7 +786,14 @@ fn acting_through_the_cache_matches_the_full_forward() {
     learner.collect(&mut venv).unwrap();
     let t = learner.replay.trajectories[0].clone();
     let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let batch = make_batch(&[&t], &learner.cfg, &learner.spec, &mut rng, Device::Cpu);
+    let batch = make_batch(
+        &[&t],
+        &learner.cfg,
+        &learner.spec,
+        0.0,
+        &mut rng,
+        Device::Cpu,
+    );
     let full = tch::no_grad(|| {
         learner
             .net
@@ -702,7 +897,7 @@ fn continuous_shapes_and_gradients() {
         episode_success: vec![true],
     };
     let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let batch = make_batch(&[&t, &t], &cfg, &spec, &mut rng, Device::Cpu);
+    let batch = make_batch(&[&t, &t], &cfg, &spec, 0.0, &mut rng, Device::Cpu);
     assert_eq!(batch.tokens.size(), vec![2, 5, 3 + 3 + 2 + 4]);
     assert_eq!(batch.actions.size(), vec![2, 5, 2]);
     let (lv, lc, lp, ..) = losses(&net, &target, &batch, 1.0, &cfg).unwrap();
@@ -790,7 +985,7 @@ fn filtered_bc_raises_the_log_prob_of_kept_replayed_actions() {
         let mut cfg = learner.cfg.clone();
         cfg.entropy_coef = 0.0;
         let (batch, net, target, vs) = if discrete {
-            let batch = make_batch(&trajs, &cfg, &learner.spec, &mut rng, Device::Cpu);
+            let batch = make_batch(&trajs, &cfg, &learner.spec, 0.0, &mut rng, Device::Cpu);
             let vs = nn::VarStore::new(Device::Cpu);
             let net = EppoNet::new(vs.root(), &cfg, &learner.spec).unwrap();
             let tvs = nn::VarStore::new(Device::Cpu);
@@ -816,7 +1011,7 @@ fn filtered_bc_raises_the_log_prob_of_kept_replayed_actions() {
                 })
                 .collect();
             let refs: Vec<&Trajectory> = owned.iter().collect();
-            let batch = make_batch(&refs, &cfg, &spec, &mut rng, Device::Cpu);
+            let batch = make_batch(&refs, &cfg, &spec, 0.0, &mut rng, Device::Cpu);
             let vs = nn::VarStore::new(Device::Cpu);
             let net = EppoNet::new(vs.root(), &cfg, &spec).unwrap();
             let tvs = nn::VarStore::new(Device::Cpu);
