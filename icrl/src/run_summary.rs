@@ -190,6 +190,35 @@ pub fn eval_command(env: EnvName, checkpoint: &Path) -> String {
     )
 }
 
+/// `mean ± se` to 3 decimals; a mean of one sample has no spread to give an
+/// error, and says so rather than print `± NaN`.
+pub fn mean_with_error(mean: f64, se: f64) -> String {
+    if se.is_finite() {
+        format!("{mean:.3} ± {se:.3}")
+    } else {
+        format!("{mean:.3} (one round, no standard error)")
+    }
+}
+
+/// Set by `cargo xtask` in the environment of the binaries it runs, so that
+/// the commands they print take the form the user typed.
+pub const VIA_XTASK_ENV: &str = "ICRL_VIA_XTASK";
+
+/// The command that continues an interrupted run from its folder (the
+/// checkpoint's grandparent, whose latest checkpoint resume picks), as
+/// `cargo xtask pretrain` when `via_xtask`, else `icrl pretrain`.
+pub fn resume_command(env: &str, method: &str, checkpoint: &Path, via_xtask: bool) -> String {
+    let run = checkpoint
+        .parent()
+        .and_then(Path::parent)
+        .unwrap_or(checkpoint);
+    let launcher = if via_xtask { "cargo xtask" } else { "icrl" };
+    format!(
+        "{launcher} pretrain --env {env} --method {method} --resume {}",
+        shell_word(run)
+    )
+}
+
 /// `path` quoted for a POSIX shell where it needs it (spaces, quotes), so a
 /// printed command works when pasted.
 pub fn shell_word(path: &Path) -> String {
@@ -200,6 +229,28 @@ pub fn shell_word(path: &Path) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_single_round_is_reported_without_a_nan_error() {
+        assert_eq!(mean_with_error(0.1456, 0.02), "0.146 ± 0.020");
+        assert_eq!(
+            mean_with_error(0.1456, f64::NAN),
+            "0.146 (one round, no standard error)"
+        );
+    }
+
+    #[test]
+    fn the_resume_line_takes_the_form_the_run_was_started_in() {
+        let ckpt = Path::new("runs/my run/checkpoints/step_40");
+        assert_eq!(
+            resume_command("car", "eppo", ckpt, true),
+            "cargo xtask pretrain --env car --method eppo --resume 'runs/my run'"
+        );
+        assert_eq!(
+            resume_command("darkroom", "ad", ckpt, false),
+            "icrl pretrain --env darkroom --method ad --resume 'runs/my run'"
+        );
+    }
 
     #[test]
     fn trend_averages_first_and_last_rounds_and_skips_rounds_without_episodes() {

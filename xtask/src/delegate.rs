@@ -130,6 +130,8 @@ fn cargo(leading: &[&str], args: &[String]) -> Result<ExitCode> {
     let status = Command::new(&cargo)
         .args(leading)
         .args(args)
+        // icrl prints its resume line as a `cargo xtask` command when set.
+        .env("ICRL_VIA_XTASK", "1")
         .status()
         .with_context(|| format!("could not start {}", Path::new(&cargo).display()))?;
     Ok(exit_code(status))

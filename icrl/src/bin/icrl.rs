@@ -275,12 +275,11 @@ fn print_learning_summary(env: &str, report: &icrl::eppo::PretrainReport) -> any
     let random = report.random;
     match metrics_trend(&report.run_dir.join("metrics.jsonl"), 0.1) {
         Some(t) => println!(
-            "learning ({} collection rounds): episodic return {:.3} in the first 10% -> {:.3} ± {:.3} in the last 10% \
+            "learning ({} collection rounds): episodic return {:.3} in the first 10% -> {} in the last 10% \
              (random policy: {:.3}); episodic cost {:.2} -> {:.2} (random policy: {:.2}){}",
             t.rounds,
             t.first.episodic_return,
-            t.last.episodic_return,
-            t.last_return_se,
+            icrl::run_summary::mean_with_error(t.last.episodic_return, t.last_return_se),
             random.episodic_return,
             t.first.episodic_cost,
             t.last.episodic_cost,
@@ -307,19 +306,6 @@ fn print_learning_summary(env: &str, report: &icrl::eppo::PretrainReport) -> any
         eval_command(env, &report.last_checkpoint)
     );
     Ok(())
-}
-
-/// The command that continues an interrupted run.
-fn resume_command(env: &str, method: &str, checkpoint: &std::path::Path) -> String {
-    // checkpoints/step_N -> the run folder (its latest checkpoint).
-    let run = checkpoint
-        .parent()
-        .and_then(std::path::Path::parent)
-        .unwrap_or(checkpoint);
-    format!(
-        "icrl pretrain --env {env} --method {method} --resume {}",
-        icrl::run_summary::shell_word(run)
-    )
 }
 
 /// `pretrain` with the graceful stop: the first SIGINT/SIGTERM ends training
@@ -354,7 +340,12 @@ fn pretrain_with_stop(args: PretrainArgs) -> ExitCode {
             eprintln!(
                 "stopped after update {updates}; checkpoint {}\nresume with: {}",
                 checkpoint.display(),
-                resume_command(&env, &method, &checkpoint)
+                icrl::run_summary::resume_command(
+                    &env,
+                    &method,
+                    &checkpoint,
+                    std::env::var_os(icrl::run_summary::VIA_XTASK_ENV).is_some()
+                )
             );
             ExitCode::from(icrl::stop::EXIT_INTERRUPTED)
         }
