@@ -93,6 +93,11 @@ pub const PHYSICS_STEPS_PER_SG_STEP: usize = 10;
 /// [`SG_STEPS_PER_ACTION`] x [`PHYSICS_STEPS_PER_SG_STEP`] = 50.
 pub const PHYSICS_STEPS_PER_ACTION: usize = SG_STEPS_PER_ACTION * PHYSICS_STEPS_PER_SG_STEP;
 
+/// The longest macro action accepted: 200 times the default, 20 s of Point's
+/// and 40 s of Car's simulated time per agent action. Beyond it an episode
+/// runs for hours of wall time with nothing to learn from.
+pub const MAX_PHYSICS_STEPS_PER_ACTION: usize = 200 * PHYSICS_STEPS_PER_ACTION;
+
 /// The default before 2026-11-30 (5 physics steps per action, a misreading
 /// of the paper's 5 environment steps). Checkpoints and datasets that do not
 /// record their macro action were made under it; loaders refuse them.
@@ -236,6 +241,14 @@ impl NavConfig {
             return bad(format!(
                 "physics_steps_per_action ({}) and max_episode_steps ({}) must be at least 1",
                 self.physics_steps_per_action, self.max_episode_steps
+            ));
+        }
+        if self.physics_steps_per_action > MAX_PHYSICS_STEPS_PER_ACTION {
+            return bad(format!(
+                "physics_steps_per_action = {}: at most {MAX_PHYSICS_STEPS_PER_ACTION} (200 times \
+                 the paper's macro action of {PHYSICS_STEPS_PER_ACTION}; one action would hold \
+                 for minutes of simulated time)",
+                self.physics_steps_per_action
             ));
         }
         self.spawn_config().validate()

@@ -103,6 +103,12 @@ fn the_macro_action_is_50_physics_steps_and_an_option() {
             ..EnvOptions::default()
         };
         assert!(make_env(name, &zero).is_err(), "{name}");
+        let huge = EnvOptions {
+            physics_steps_per_action: Some(1_000_000_000),
+            ..EnvOptions::default()
+        };
+        let err = make_env(name, &huge).err().expect("bounded");
+        assert!(err.to_string().contains("at most 10000"), "{err}");
     }
     // What checkpoints and datasets record.
     assert_eq!(EnvName::Point.physics_steps_per_action(None), Some(50));
