@@ -358,6 +358,27 @@ fn path_to_cstring(path: &Path, source_name: &str) -> Result<CString, MujocoErro
     })
 }
 
+/// Attributes whose values are names or keywords, never numbers: a body
+/// may be called "inf".
+const NAMING_ATTRIBUTES: [&str; 16] = [
+    "name",
+    "class",
+    "childclass",
+    "file",
+    "type",
+    "material",
+    "texture",
+    "mesh",
+    "joint",
+    "body",
+    "site",
+    "geom",
+    "tendon",
+    "target",
+    "builtin",
+    "mark",
+];
+
 /// Runs `mj_loadXML` and wraps the result, with MuJoCo's message on failure.
 /// Refuses what MuJoCo 2.2's parser does not survive (found by fuzzing the
 /// loader, `icrl/tests/fuzz_loaders.rs`): an integer beyond the 32-bit
@@ -374,9 +395,23 @@ fn preflight(xml: &str, source_name: &str) -> Result<(), MujocoError> {
     // Attribute values: the text between `="` and the next `"`.
     let mut rest = xml;
     while let Some(at) = rest.find("=\"") {
+        let key = rest[..at]
+            .rsplit(|c: char| c.is_whitespace() || c == '<')
+            .next()
+            .unwrap_or("");
         let after = &rest[at + 2..];
         let Some(end) = after.find('"') else { break };
         for token in after[..end].split_whitespace() {
+            // MuJoCo reads "nan", "inf" and 1e999 into positions and sizes
+            // and builds a model that cannot simulate or draw.
+            if !NAMING_ATTRIBUTES.contains(&key)
+                && token.parse::<f64>().is_ok_and(|v| !v.is_finite())
+            {
+                return refuse(format!(
+                    "{key}=\"{}\" holds {token}: numbers in a model must be finite",
+                    &after[..end]
+                ));
+            }
             let digits = token.strip_prefix(['-', '+']).unwrap_or(token);
             if !digits.is_empty()
                 && digits.bytes().all(|b| b.is_ascii_digit())
@@ -526,6 +561,17 @@ mod tests {
         // Large floats and negative numbers in range are untouched.
         let big = BOX.replace("pos=\"0 0 1\"", "pos=\"-2147483647 0 1e30\"");
         Model::from_xml_str(&big).unwrap();
+        // Numbers that are not finite are named; names that read as one are not numbers.
+        for bad in ["nan 0 1", "0 inf 1", "0 0 1e999", "-Infinity 0 1"] {
+            let xml = BOX.replace("pos=\"0 0 1\"", &format!("pos=\"{bad}\""));
+            let e = Model::from_xml_str(&xml).unwrap_err().to_string();
+            assert!(
+                e.contains(&format!("pos=\"{bad}\"")) && e.contains("must be finite"),
+                "{e}"
+            );
+        }
+        let named = BOX.replace("name=\"b\"", "name=\"inf\"");
+        Model::from_xml_str(&named).unwrap();
     }
 
     #[test]
