@@ -431,6 +431,12 @@ fn negative_numbers_are_named_not_read_as_flags() {
         &d("--cost-limits", "-1"),
         "cost limit -1 must be finite and non-negative",
     );
+    // Fewer steps than one PPO-Lagrangian rollout were rounded up in silence.
+    refused(
+        &d("--steps", "1"),
+        "--steps 1: a PPO-Lagrangian history is made of whole rollouts of",
+    );
+    assert!(!dir.join("h.h5").exists());
     let e = |flag: &str| icrl(&["eval", "--env", "darkroom", flag, "-1"]);
     usage_error(&e("--episodes"), not_a_count);
     usage_error(&e("--tasks"), not_a_count);

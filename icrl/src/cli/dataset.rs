@@ -77,6 +77,16 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
         cfg.cost_limits = c.clone();
     }
     cfg.validate()?;
+    // PPO-Lagrangian learns in whole rollouts: fewer steps would be rounded
+    // up in silence (a history of 236 steps for --steps 1).
+    let rollout = cfg.ppo.num_envs * cfg.ppo.rollout_steps;
+    if cfg.source == Source::PpoLagrangian && cfg.steps < rollout {
+        return Err(DatasetError::Config(format!(
+            "--steps {}: a PPO-Lagrangian history is made of whole rollouts of {rollout} \
+             environment steps ({} environments x {} steps); pass --steps {rollout} or more",
+            cfg.steps, cfg.ppo.num_envs, cfg.ppo.rollout_steps
+        )));
+    }
     // A bad --out fails now, not after hours of generation; a second
     // process making the same file is refused while this one runs.
     let existing = Existing::from_force(cmd.force);
