@@ -195,6 +195,11 @@ pub fn write_file<E: From<OutputError>>(
     check_output(path, existing)?;
     let tmp = temp_path(path);
     let _ = fs::remove_file(&tmp);
+    // Created here first, so an unwritable folder is named by the OS's own
+    // words before a writer (plotters, HDF5) words it its own way.
+    if let Err(e) = fs::File::create(&tmp) {
+        return Err(OutputError::new(path, format!("cannot write here: {e}")).into());
+    }
     let result = write(&tmp).and_then(|()| publish(&tmp, path, existing).map_err(E::from));
     if result.is_err() {
         let _ = fs::remove_file(&tmp);
@@ -335,6 +340,25 @@ mod tests {
         let _ = fs::remove_dir_all(&d);
         fs::create_dir_all(&d).unwrap();
         d
+    }
+
+    #[test]
+    fn an_unwritable_folder_is_named_before_the_writer_runs() {
+        // /proc takes no new files, not even from root (CI runs as root, so
+        // permissions alone cannot make a folder unwritable here).
+        let path = Path::new("/proc/icrl-output-test.png");
+        let mut ran = false;
+        let err = write_file::<OutputError>(path, Existing::Refuse, |_| {
+            ran = true;
+            Ok(())
+        })
+        .unwrap_err()
+        .to_string();
+        assert!(!ran, "the writer never saw the path");
+        assert!(
+            err.contains("/proc/icrl-output-test.png") && err.contains("cannot write here"),
+            "{err}"
+        );
     }
 
     #[test]
