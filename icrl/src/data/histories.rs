@@ -758,6 +758,15 @@ pub fn read_histories(
     }
 
     // Split the flat arrays by history_id (non-decreasing, every id present).
+    // Out of order, a history would look empty though its steps are there.
+    if let Some(k) = (1..n).find(|&k| history_id[k] < history_id[k - 1]) {
+        return Err(malformed(format!(
+            "history_id must be non-decreasing (every history's steps together, in order 0..{h}): \
+             step {k} has id {} after id {}",
+            history_id[k],
+            history_id[k - 1]
+        )));
+    }
     let mut histories = Vec::with_capacity(h);
     let mut start = 0usize;
     for i in 0..h {
@@ -1113,6 +1122,23 @@ mod tests {
         let (p, msg) = problem_of(&path, None);
         assert!(matches!(p, Problem::Empty(_)), "{msg}");
         assert!(msg.contains("history 2"), "{msg}");
+        // Two histories' steps out of order: named as such, not as a
+        // history without steps.
+        let shuffled = dir.join("shuffled.h5");
+        write_histories(&shuffled, &tiny_file(2)).unwrap();
+        edit(&shuffled, |f| {
+            let mut ids: Vec<i64> = f.dataset("history_id").unwrap().read_raw().unwrap();
+            let last = ids.len() - 1;
+            ids.swap(0, last);
+            f.unlink("history_id").unwrap();
+            put(f, "history_id", &ids, &[ids.len()]).unwrap();
+        });
+        let (_, msg) = problem_of(&shuffled, None);
+        assert!(
+            msg.contains("history_id must be non-decreasing")
+                && msg.contains("step 1 has id 0 after id 1"),
+            "{msg}"
+        );
         // A history that stops mid-episode cannot be written.
         file.histories[0].timeouts[4] = false;
         let e = write_histories(&path, &file).unwrap_err();
