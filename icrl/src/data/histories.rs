@@ -401,9 +401,17 @@ impl History {
                 )));
             }
         }
-        if !self.cost_limit.is_finite() {
+        // A negative cost would pay budget back: no CMDP here has one, and
+        // the return- and cost-to-go conditioning assume none.
+        if let Some(k) = self.costs.iter().position(|&c| c < 0.0) {
             return Err(Problem::Invalid(format!(
-                "history {i}: cost limit {} is not finite",
+                "history {i}: costs holds {} at step {k} (costs must be non-negative)",
+                self.costs[k]
+            )));
+        }
+        if !(self.cost_limit.is_finite() && self.cost_limit >= 0.0) {
+            return Err(Problem::Invalid(format!(
+                "history {i}: cost limit {} must be finite and non-negative",
                 self.cost_limit
             )));
         }
@@ -1215,6 +1223,20 @@ mod tests {
         overwrite(&path, "observations", &obs);
         let (_, msg) = problem_of(&path, None);
         assert!(msg.contains("observations holds inf at step 0"), "{msg}");
+        // A negative cost, which would pay budget back.
+        write_histories(&path, &file).unwrap();
+        let mut costs: Vec<f32> = file
+            .histories
+            .iter()
+            .flat_map(|h| h.costs.clone())
+            .collect();
+        costs[6] = -1.0;
+        overwrite(&path, "costs", &costs);
+        let (_, msg) = problem_of(&path, None);
+        assert!(
+            msg.contains("history 1: costs holds -1 at step 1 (costs must be non-negative)"),
+            "{msg}"
+        );
         // Action 17 in a 5-action space, and a fractional action.
         for (bad, shown) in [
             (17.0f32, "action 17 "),
