@@ -239,6 +239,8 @@ fn history_file(path: &Path) {
                 action_n: Some(5),
                 grid_size: 9,
                 physics_steps_per_action: None,
+                grid_histories: histories.len(),
+                shard: None,
             },
             histories,
         },

@@ -53,14 +53,17 @@ enum Command {
 }
 
 #[derive(Debug, Args)]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
 struct DatasetArgs {
+    #[command(subcommand)]
+    merge: Option<DatasetMerge>,
     /// Environment.
-    #[arg(long, value_parser = ["darkroom", "point", "car"])]
-    env: String,
+    #[arg(long, required = true, value_parser = ["darkroom", "point", "car"])]
+    env: Option<String>,
     /// Output HDF5 file (written beside it, then renamed); an existing file is
     /// refused unless --force.
-    #[arg(long)]
-    out: PathBuf,
+    #[arg(long, required = true)]
+    out: Option<PathBuf>,
     /// Pretraining tasks (centre-oriented).
     #[arg(long, default_value_t = 10, allow_hyphen_values = true, value_parser = parse_count)]
     tasks: usize,
@@ -90,10 +93,33 @@ struct DatasetArgs {
     /// the file's config.
     #[arg(long, value_name = "N", allow_hyphen_values = true, value_parser = parse_count)]
     keep_episodes: Option<usize>,
+    /// Make only the I-th of N disjoint parts of the task x cost-limit grid
+    /// (I from 0, e.g. $SLURM_ARRAY_TASK_ID); the N shards hold what one
+    /// unsharded run with the same seed holds. Join them with `icrl dataset merge`.
+    #[arg(long, value_name = "I/N")]
+    shard: Option<icrl::data::histories::Shard>,
     /// Replace an existing history file at --out (never a device, link,
     /// folder or checkpoint file).
     #[arg(long)]
     force: bool,
+}
+
+#[derive(Debug, Subcommand)]
+enum DatasetMerge {
+    /// One file over the shards of `icrl dataset --shard I/N`: its datasets are HDF5 virtual
+    /// datasets over them, read as one file by the AD learner and h5py. Refuses shards of
+    /// another grid, missing or repeated parts, and files that fail their checksum.
+    Merge {
+        /// The merged file, in the shards' folder or above it (it names them relative to itself).
+        #[arg(long)]
+        out: PathBuf,
+        /// The shard files, in any order.
+        #[arg(required = true)]
+        shards: Vec<PathBuf>,
+        /// Replace an existing history file at --out.
+        #[arg(long)]
+        force: bool,
+    },
 }
 
 /// A count (tasks, steps, episodes, threads, ...): a whole number from 0 up.
@@ -121,6 +147,25 @@ fn parse_seed(s: &str) -> Result<u64, String> {
 }
 
 fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
+    if let Some(DatasetMerge::Merge { out, shards, force }) = args.merge {
+        let r = icrl::data::merge::merge(
+            &out,
+            &shards,
+            safety_envs::output::Existing::from_force(force),
+        )?;
+        println!(
+            "wrote {}: {} histories, {} steps, virtual datasets over {} shards ({} bytes of its own)",
+            r.out.display(),
+            r.histories,
+            r.steps,
+            r.shards,
+            r.bytes
+        );
+        return Ok(());
+    }
+    let (Some(env), Some(out)) = (args.env, args.out) else {
+        anyhow::bail!("icrl dataset needs --env and --out");
+    };
     let source = match args.source.as_str() {
         "noisy-optimal" => icrl::data::dataset::Source::NoisyOptimal,
         _ => icrl::data::dataset::Source::PpoLagrangian,
@@ -130,8 +175,8 @@ fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     let keep_episodes = args.keep_episodes;
     let r = icrl::cli::dataset::dataset_command(&icrl::cli::dataset::DatasetCommand {
-        env: args.env,
-        out: args.out,
+        env,
+        out,
         tasks: args.tasks,
         steps: args.steps,
         cost_limits: args.cost_limits,
@@ -140,6 +185,7 @@ fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
         source,
         physics_steps_per_action: args.physics_steps_per_action,
         keep_episodes: args.keep_episodes,
+        shard: args.shard,
         force: args.force,
     })?;
     println!(
