@@ -50,6 +50,88 @@ enum Command {
     },
     /// Evaluate checkpoints in context on held-out edge-oriented tasks: JSON, CSV, figures.
     Eval(icrl_eval::EvalArgs),
+    /// Seeds and settings as a Slurm job array (--emit slurm), then their table (--gather).
+    Sweep(SweepArgs),
+}
+
+#[derive(Debug, Args)]
+struct SweepArgs {
+    /// The grid file (TOML: env, method, preset, seeds, out, [set], [grid], [slurm]).
+    #[arg(long, value_name = "FILE")]
+    grid: PathBuf,
+    /// Write OUT/sweep.sbatch: one array task per seed and setting.
+    #[arg(long, value_parser = ["slurm"], required_unless_present = "gather")]
+    emit: Option<String>,
+    /// Evaluate every finished run's last checkpoint and write OUT/gather/table.md and table.csv.
+    #[arg(long, conflicts_with = "emit")]
+    gather: bool,
+    /// Held-out evaluation tasks per run (--gather).
+    #[arg(long, default_value_t = 16, allow_hyphen_values = true, value_parser = parse_count)]
+    tasks: usize,
+    /// Episodes per task (--gather; default: the environment's).
+    #[arg(long, allow_hyphen_values = true, value_parser = parse_count)]
+    episodes: Option<usize>,
+    /// Budgets sampled per evaluation (--gather).
+    #[arg(long, default_value_t = 100, allow_hyphen_values = true, value_parser = parse_count)]
+    n_budgets: usize,
+    /// Threads for evaluation (--gather; default: all cores).
+    #[arg(long, allow_hyphen_values = true, value_parser = parse_count)]
+    threads: Option<usize>,
+    /// Replace files written before (the script, the gathered evaluations and table).
+    #[arg(long)]
+    force: bool,
+}
+
+fn sweep(args: SweepArgs) -> anyhow::Result<()> {
+    use icrl::cli::sweep::{GatherOptions, SweepGrid, emit_slurm, gather};
+    let grid = SweepGrid::load(&args.grid)?;
+    if !args.gather {
+        let icrl = match &grid.slurm.icrl {
+            Some(p) => p.clone(),
+            None => std::env::current_exe()?,
+        };
+        let script = emit_slurm(&grid, &icrl, args.force)?;
+        println!(
+            "wrote {} ({} array tasks); submit it with:\n  sbatch {}\nthen, when the tasks are done:\n  icrl sweep --grid {} --gather",
+            script.display(),
+            grid.tasks().len(),
+            icrl::run_summary::shell_word(&script),
+            icrl::run_summary::shell_word(&args.grid)
+        );
+        return Ok(());
+    }
+    let threads = args
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let g = gather(
+        &grid,
+        &GatherOptions {
+            tasks: args.tasks,
+            episodes: args.episodes,
+            n_budgets: args.n_budgets,
+            threads,
+            force: args.force,
+        },
+    )?;
+    for (task, why) in &g.unfinished {
+        eprintln!("task {task}: {why}");
+    }
+    print!("{}", g.table);
+    println!(
+        "{} runs evaluated, {} not finished; wrote {}",
+        g.evaluated,
+        g.unfinished.len(),
+        g.files
+            .iter()
+            .filter(|f| f.extension().is_some_and(|e| e == "md" || e == "csv"))
+            .map(|f| f.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    if g.evaluated == 0 {
+        anyhow::bail!("no finished run to gather");
+    }
+    Ok(())
 }
 
 #[derive(Debug, Args)]
@@ -244,6 +326,11 @@ struct PretrainArgs {
     /// Folder that receives the run folder.
     #[arg(long, default_value = "runs")]
     out: PathBuf,
+    /// Resume the run of this env and method under --out that trained furthest, if there is
+    /// one (done if it has finished), else start one there: a requeued job array task
+    /// (`icrl sweep`) continues its own run instead of starting again.
+    #[arg(long, conflicts_with = "resume")]
+    resume_in_out: bool,
 }
 
 /// `pretrain --method ad`: safe supervised pretraining on a history file
@@ -276,7 +363,24 @@ fn pretrain_ad(args: PretrainArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn pretrain(args: PretrainArgs) -> anyhow::Result<()> {
+fn pretrain(mut args: PretrainArgs) -> anyhow::Result<()> {
+    if args.resume_in_out {
+        use icrl::cli::pretrain::{InOut, run_in_out};
+        match run_in_out(&args.out, &args.env, &args.method, &args.set)? {
+            InOut::Start => {}
+            InOut::Resume(run) => {
+                eprintln!("--resume-in-out: resuming {}", run.display());
+                args.resume = Some(run);
+            }
+            InOut::Finished { run, updates } => {
+                println!(
+                    "run {} finished: {updates} updates, as its config asks; nothing to do",
+                    run.display()
+                );
+                return Ok(());
+            }
+        }
+    }
     if args.method == "ad" {
         return pretrain_ad(args);
     }
@@ -439,6 +543,7 @@ fn main() -> ExitCode {
         }
         Command::Dataset(args) => dataset(args),
         Command::Eval(args) => icrl_eval::eval(args),
+        Command::Sweep(args) => sweep(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,
