@@ -123,7 +123,7 @@ fn sweep(args: SweepArgs) -> anyhow::Result<()> {
         g.unfinished.len(),
         g.files
             .iter()
-            .filter(|f| f.extension().is_some_and(|e| e == "md" || e == "csv"))
+            .filter(|f| f.file_stem().is_some_and(|s| s == "table"))
             .map(|f| f.display().to_string())
             .collect::<Vec<_>>()
             .join(", ")

@@ -128,8 +128,7 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
             Source::PpoLagrangian => "ppo-lagrangian",
             Source::NoisyOptimal => "noisy-optimal",
         },
-        cmd.shard
-            .map_or(String::new(), |s| format!(" shard {s}"))
+        cmd.shard.map_or(String::new(), |s| format!(" shard {s}"))
     ));
     let started = std::time::Instant::now();
     let data = generate(&cfg, &|n| bar.inc(n as u64))?;

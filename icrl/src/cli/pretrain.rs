@@ -114,7 +114,11 @@ pub fn run_in_out(
         .parse::<toml::Table>()
         .map_err(|e| invalid(e.to_string()))?;
     crate::presets::apply_overrides(&mut table, sets).map_err(|e| invalid(e.to_string()))?;
-    let key = if method == "ad" { "updates" } else { "total_updates" };
+    let key = if method == "ad" {
+        "updates"
+    } else {
+        "total_updates"
+    };
     let total = table
         .get(key)
         .and_then(toml::Value::as_integer)

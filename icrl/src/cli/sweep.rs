@@ -185,9 +185,7 @@ impl SweepGrid {
         }
         combos
             .into_iter()
-            .flat_map(|settings| {
-                self.seeds.iter().map(move |&seed| (seed, settings.clone()))
-            })
+            .flat_map(|settings| self.seeds.iter().map(move |&seed| (seed, settings.clone())))
             .enumerate()
             .map(|(index, (seed, settings))| Task {
                 index,
@@ -216,7 +214,9 @@ impl SweepGrid {
             .map_err(|e| e.to_string())?;
         crate::presets::apply_overrides(&mut table, &self.sets(task)).map_err(|e| e.to_string())?;
         let checked = match self.method.as_str() {
-            "ad" => crate::ad::AdConfig::from_table(table.clone()).map(|_| ()).map_err(|e| e.to_string()),
+            "ad" => crate::ad::AdConfig::from_table(table.clone())
+                .map(|_| ())
+                .map_err(|e| e.to_string()),
             _ => crate::presets::resolve::<crate::eppo::EppoConfig>("sweep", table.clone())
                 .map_err(|e| e.to_string())
                 .and_then(|c| c.validate().map_err(|e| e.to_string())),
@@ -306,18 +306,18 @@ struct Resources {
 
 fn resources(grid: &SweepGrid) -> Result<Resources, String> {
     let s = &grid.slurm;
-    let tables: Vec<toml::Table> = grid
-        .tasks_checked()?
-        .into_iter()
-        .map(|(_, t)| t)
-        .collect();
+    let tables: Vec<toml::Table> = grid.tasks_checked()?.into_iter().map(|(_, t)| t).collect();
     let int = |t: &toml::Table, k: &str| t.get(k).and_then(toml::Value::as_integer).unwrap_or(0);
     let updates_key = if grid.method == "ad" {
         "updates"
     } else {
         "total_updates"
     };
-    let updates = tables.iter().map(|t| int(t, updates_key)).max().unwrap_or(0);
+    let updates = tables
+        .iter()
+        .map(|t| int(t, updates_key))
+        .max()
+        .unwrap_or(0);
     // torch_threads = 0 means one per core: ask for 8.
     let threads = tables
         .iter()
@@ -523,7 +523,10 @@ pub fn gather(grid: &SweepGrid, opts: &GatherOptions) -> Result<Gathered, SweepE
                 continue;
             }
             InOut::Start => {
-                unfinished.push((task.index, format!("no run with a checkpoint in {}", dir.display())));
+                unfinished.push((
+                    task.index,
+                    format!("no run with a checkpoint in {}", dir.display()),
+                ));
                 continue;
             }
         };
@@ -539,7 +542,10 @@ pub fn gather(grid: &SweepGrid, opts: &GatherOptions) -> Result<Gathered, SweepE
             sweep: false,
             random: false,
             render: false,
-            out: grid.out.join("gather").join(format!("task_{:03}", task.index)),
+            out: grid
+                .out
+                .join("gather")
+                .join(format!("task_{:03}", task.index)),
             eval_seed: 0,
             batch: 256,
             threads: opts.threads,
@@ -556,7 +562,9 @@ pub fn gather(grid: &SweepGrid, opts: &GatherOptions) -> Result<Gathered, SweepE
             .files
             .iter()
             .find(|f| f.extension().is_some_and(|e| e == "json"))
-            .ok_or_else(|| SweepError::Io(format!("task {}: eval wrote no JSON report", task.index)))?;
+            .ok_or_else(|| {
+                SweepError::Io(format!("task {}: eval wrote no JSON report", task.index))
+            })?;
         let json: serde_json::Value = std::fs::read_to_string(report)
             .ok()
             .and_then(|t| serde_json::from_str(&t).ok())
@@ -679,7 +687,10 @@ account = "proj"
             assert!(script.contains(want), "{want} missing from\n{script}");
         }
         // A bad setting fails when the grid is read, not on the cluster.
-        let path = grid_file(&dir, "env = \"darkroom\"\nseeds = [0]\nout = \"s\"\n[grid]\nno_such_key = [1]\n");
+        let path = grid_file(
+            &dir,
+            "env = \"darkroom\"\nseeds = [0]\nout = \"s\"\n[grid]\nno_such_key = [1]\n",
+        );
         let e = SweepGrid::load(&path).unwrap_err().to_string();
         assert!(e.contains("no_such_key"), "{e}");
         let _ = std::fs::remove_dir_all(&dir);
@@ -693,7 +704,10 @@ account = "proj"
         let sets: Vec<String> = ["total_updates=2", "checkpoint_every=1", "seed=3"]
             .map(String::from)
             .to_vec();
-        assert_eq!(run_in_out(&out, "darkroom", "eppo", &sets).unwrap(), InOut::Start);
+        assert_eq!(
+            run_in_out(&out, "darkroom", "eppo", &sets).unwrap(),
+            InOut::Start
+        );
         let first = crate::cli::pretrain::eppo("darkroom", "quick", None, &sets, &out).unwrap();
         assert_eq!(
             run_in_out(&out, "darkroom", "eppo", &sets).unwrap(),
@@ -713,7 +727,11 @@ account = "proj"
         let again =
             crate::cli::pretrain::eppo("darkroom", "quick", Some(&run), &longer, &out).unwrap();
         assert_eq!((again.run_dir, again.updates), (first.run_dir, 3));
-        assert_eq!(std::fs::read_dir(&out).unwrap().count(), 1, "one run folder");
+        assert_eq!(
+            std::fs::read_dir(&out).unwrap().count(),
+            1,
+            "one run folder"
+        );
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -655,7 +655,10 @@ mod tests {
         for (a, b) in union.iter().zip(&whole.histories) {
             assert_eq!(a.task, b.task);
             assert_eq!((&a.terminals, &a.timeouts), (&b.terminals, &b.timeouts));
-            assert!(bits(a) == bits(b), "a shard's history differs from the unsharded one");
+            assert!(
+                bits(a) == bits(b),
+                "a shard's history differs from the unsharded one"
+            );
         }
         // More shards than histories would leave some empty.
         cfg.shard = Some(Shard { index: 0, count: 5 });
@@ -671,7 +674,9 @@ mod tests {
             assert!(e.contains("I/N"), "{bad}: {e}");
         }
         // Contiguous parts that cover the grid once.
-        let parts: Vec<_> = (0..3).map(|i| Shard { index: i, count: 3 }.range(4)).collect();
+        let parts: Vec<_> = (0..3)
+            .map(|i| Shard { index: i, count: 3 }.range(4))
+            .collect();
         assert_eq!(parts, vec![0..1, 1..2, 2..4]);
     }
 

@@ -59,9 +59,9 @@ use std::path::{Path, PathBuf};
 use std::str::FromStr;
 
 use hdf5::types::VarLenUnicode;
-use serde::{Deserialize, Serialize};
 use safety_envs::output::{self, Existing, OutputError};
 use safety_envs::{Cell, EnvName, OLD_PHYSICS_STEPS_PER_ACTION, PHYSICS_STEPS_PER_ACTION, Task};
+use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 /// Version of the layout above; readers refuse any other.
@@ -235,7 +235,11 @@ impl fmt::Display for Shard {
 impl FromStr for Shard {
     type Err = String;
     fn from_str(s: &str) -> Result<Self, String> {
-        let bad = || format!("{s:?} is not a shard: write I/N, the I-th of N parts counted from 0 (0/3, 1/3, 2/3)");
+        let bad = || {
+            format!(
+                "{s:?} is not a shard: write I/N, the I-th of N parts counted from 0 (0/3, 1/3, 2/3)"
+            )
+        };
         let (i, n) = s.trim().split_once('/').ok_or_else(bad)?;
         let (index, count) = (
             i.trim().parse::<usize>().map_err(|_| bad())?,
@@ -775,9 +779,11 @@ pub(crate) fn write_attrs(f: &hdf5::File, info: &DatasetInfo) -> hdf5::Result<()
         ("grid_histories", info.grid_histories),
     ]
     .into_iter()
-    .chain(info.shard.into_iter().flat_map(|s| {
-        [("shard_index", s.index), ("shard_count", s.count)]
-    })) {
+    .chain(
+        info.shard
+            .into_iter()
+            .flat_map(|s| [("shard_index", s.index), ("shard_count", s.count)]),
+    ) {
         f.new_attr::<u64>()
             .create(name)?
             .write_scalar(&(v as u64))?;

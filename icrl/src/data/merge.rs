@@ -82,7 +82,9 @@ fn config_without(config: &str, keys: &[&str]) -> String {
     let removed = v
         .get_mut("dataset")
         .and_then(|d| d.as_object_mut())
-        .map_or(0, |d| keys.iter().filter(|k| d.remove(**k).is_some()).count());
+        .map_or(0, |d| {
+            keys.iter().filter(|k| d.remove(**k).is_some()).count()
+        });
     if removed > 0 {
         v.to_string()
     } else {
@@ -323,7 +325,8 @@ fn write_views(
     }
     histories::write_attrs(&f, info)?;
     let records: Vec<&ShardRecord> = parts.iter().map(|p| &p.record).collect();
-    let json = serde_json::to_string(&records).map_err(|e| hdf5::Error::from(e.to_string().as_str()))?;
+    let json =
+        serde_json::to_string(&records).map_err(|e| hdf5::Error::from(e.to_string().as_str()))?;
     histories::put_text(&f, SHARDS_ATTR, &json)?;
     f.flush()
 }
@@ -398,7 +401,10 @@ mod tests {
         let out = dir.join("all.h5");
         let r = merge(&out, &shards, Existing::Refuse).unwrap();
         assert_eq!((r.shards, r.histories, r.steps), (3, 3, 15));
-        assert_eq!(read_histories(&out, Some("darkroom")).unwrap(), tiny_file(3));
+        assert_eq!(
+            read_histories(&out, Some("darkroom")).unwrap(),
+            tiny_file(3)
+        );
         h5py_check(&out, true);
         // Read from another working directory: libhdf5 finds the shards
         // beside the merged file.
@@ -416,11 +422,18 @@ mod tests {
         let dir = tmpdir("merge-bad");
         let shards = write_shards(&dir);
         let out = dir.join("all.h5");
-        let refused = |shards: &[PathBuf]| merge(&out, shards, Existing::Refuse).unwrap_err().to_string();
+        let refused = |shards: &[PathBuf]| {
+            merge(&out, shards, Existing::Refuse)
+                .unwrap_err()
+                .to_string()
+        };
         let e = refused(&shards[..2]);
         assert!(e.contains("shard 2/3 missing"), "{e}");
         let e = refused(&[shards[0].clone(), shards[1].clone(), shards[1].clone()]);
-        assert!(e.contains("shard 1/3 again") && e.contains("overlap"), "{e}");
+        assert!(
+            e.contains("shard 1/3 again") && e.contains("overlap"),
+            "{e}"
+        );
         // Another environment, another macro action.
         let whole = tiny_file(3);
         let other = dir.join("other.h5");
@@ -447,11 +460,14 @@ mod tests {
             };
             write_histories(&other, &f).unwrap();
             let e = refused(&[shards[0].clone(), shards[1].clone(), other.clone()]);
-            assert!(e.contains(what) && e.contains("not parts of one dataset"), "{what}: {e}");
+            assert!(
+                e.contains(what) && e.contains("not parts of one dataset"),
+                "{what}: {e}"
+            );
         }
         // A whole (unsharded) file.
         write_histories(&other, &whole).unwrap();
-        let e = refused(&[other.clone()]);
+        let e = refused(std::slice::from_ref(&other));
         assert!(e.contains("not a shard"), "{e}");
         // A damaged shard fails its checksum.
         let mut bytes = std::fs::read(&shards[1]).unwrap();
@@ -482,7 +498,10 @@ mod tests {
         };
         write_histories(&shards[1], &part).unwrap();
         let e = read_histories(&out, None).unwrap_err().to_string();
-        assert!(e.contains("shard1.h5") && e.contains("not the file that was merged"), "{e}");
+        assert!(
+            e.contains("shard1.h5") && e.contains("not the file that was merged"),
+            "{e}"
+        );
         std::fs::remove_file(&shards[1]).unwrap();
         let e = read_histories(&out, None).unwrap_err().to_string();
         assert!(e.contains("shard1.h5 is missing"), "{e}");
