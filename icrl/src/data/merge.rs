@@ -51,18 +51,6 @@ pub struct MergeReport {
     pub bytes: u64,
 }
 
-/// The layout's datasets: per step (rows = steps) or per history.
-const PER_STEP_F32: [&str; 7] = [
-    "observations",
-    "next_observations",
-    "actions",
-    "rewards",
-    "costs",
-    "terminals",
-    "timeouts",
-];
-const PER_STEP_I64: [&str; 2] = ["history_id", "episode_id"];
-
 /// One checked shard, ready to be mapped.
 struct Part {
     path: PathBuf,
@@ -280,24 +268,27 @@ fn write_views(
         .with_fapl(|p| p.libver_v18())
         .with_fcpl(|p| p.userblock(USER_BLOCK as u64))
         .create(tmp)?;
-    let obstacles = parts[0].obstacles;
-    // (name, trailing dimensions, per step?)
-    let mut layout: Vec<(&str, Vec<usize>, bool)> = vec![
-        ("observations", vec![info.obs_dim], true),
-        ("next_observations", vec![info.obs_dim], true),
-        ("actions", vec![info.action_dim], true),
+    // The layout's datasets: name, float32 (else int64), rows are steps
+    // (else histories), trailing dimensions.
+    let (o, a, obstacles) = (info.obs_dim, info.action_dim, parts[0].obstacles);
+    let layout: [(&str, bool, bool, Vec<usize>); 12] = [
+        ("observations", true, true, vec![o]),
+        ("next_observations", true, true, vec![o]),
+        ("actions", true, true, vec![a]),
+        ("rewards", true, true, vec![]),
+        ("costs", true, true, vec![]),
+        ("terminals", true, true, vec![]),
+        ("timeouts", true, true, vec![]),
+        ("history_id", false, true, vec![]),
+        ("episode_id", false, true, vec![]),
+        ("cost_limit", true, false, vec![]),
+        ("task_goal", false, false, vec![2]),
+        ("task_obstacles", false, false, vec![obstacles, 2]),
     ];
-    for name in PER_STEP_F32[3..].iter().chain(&PER_STEP_I64) {
-        layout.push((name, vec![], true));
-    }
-    layout.push(("cost_limit", vec![], false));
-    layout.push(("task_goal", vec![2], false));
-    layout.push(("task_obstacles", vec![obstacles, 2], false));
-    for (name, tail, per_step) in layout {
+    for (name, is_f32, per_step, tail) in layout {
         let rows = |p: &Part| if per_step { p.steps } else { p.histories };
         let shape = |n: usize| [vec![n], tail.clone()].concat();
         let total = shape(if per_step { steps } else { n_histories });
-        let is_f32 = PER_STEP_F32.contains(&name) || name == "cost_limit";
         let mut builder = if is_f32 {
             f.new_dataset::<f32>()
         } else {
