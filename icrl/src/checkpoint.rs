@@ -444,6 +444,43 @@ impl RunDir {
         let _ = fs::remove_dir(&self.path);
     }
 
+    /// The run of `env` and `method` under `root` that has trained furthest:
+    /// among the folders `{env}__{method}__*` with a checkpoint, the one whose
+    /// latest checkpoint has the most updates, with that checkpoint and its
+    /// update count. `None` when there is none (or no `root`). A requeued
+    /// job array task finds its own run this way (`pretrain --resume-in-out`).
+    pub fn furthest_in(
+        root: &Path,
+        env: &str,
+        method: &str,
+    ) -> Result<Option<(Self, PathBuf, u64)>, CheckpointError> {
+        let Ok(entries) = fs::read_dir(root) else {
+            return Ok(None);
+        };
+        let prefix = format!("{env}__{method}__");
+        let mut best: Option<(Self, PathBuf, u64)> = None;
+        for entry in entries {
+            let entry = entry.map_err(io(root))?;
+            let run = RunDir { path: entry.path() };
+            if !entry.file_name().to_string_lossy().starts_with(&prefix)
+                || !run.path.join("checkpoints").is_dir()
+            {
+                continue;
+            }
+            let Some(ckpt) = run.latest_checkpoint()? else {
+                continue;
+            };
+            let updates = ckpt
+                .file_name()
+                .and_then(|n| n.to_string_lossy().strip_prefix("step_")?.parse().ok())
+                .unwrap_or(0);
+            if best.as_ref().is_none_or(|(_, _, u)| updates > *u) {
+                best = Some((run, ckpt, updates));
+            }
+        }
+        Ok(best)
+    }
+
     /// Resolves `--resume PATH`: a run folder (its latest checkpoint) or one
     /// `checkpoints/step_N` folder. Returns the run and the checkpoint folder.
     pub fn resolve_resume(path: &Path) -> Result<(Self, PathBuf), CheckpointError> {

@@ -207,7 +207,7 @@ fn mjcf_loader_survives_mutated_models() {
 fn history_file(path: &Path) {
     use icrl::data::histories::{DatasetInfo, History, HistoryFile, write_histories};
     let spawn = safety_envs::SpawnConfig::darkroom();
-    let histories = (0..3)
+    let histories: Vec<History> = (0..3)
         .map(|i| {
             let task =
                 safety_envs::sample_task(&spawn, safety_envs::Orientation::Centre, i).unwrap();
@@ -239,6 +239,8 @@ fn history_file(path: &Path) {
                 action_n: Some(5),
                 grid_size: 9,
                 physics_steps_per_action: None,
+                grid_histories: histories.len(),
+                shard: None,
             },
             histories,
         },

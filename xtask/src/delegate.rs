@@ -27,6 +27,27 @@ pub fn test(args: &[String]) -> Result<ExitCode> {
     }
 }
 
+/// `cargo xtask test --slurm`: builds `icrl`, then runs `tests/slurm/run.sh`
+/// with it: a one-node Slurm cluster on this machine (installed when
+/// missing) running a sweep's job array and a sharded dataset with its merge.
+pub fn test_slurm() -> Result<ExitCode> {
+    setup()?;
+    let code = cargo(&["build", "-p", "icrl", "--bin", "icrl"], &[])?;
+    if code != ExitCode::SUCCESS {
+        return Ok(code);
+    }
+    let root = repo_root();
+    let script = root.join("tests").join("slurm").join("run.sh");
+    let icrl = root.join("target").join("debug").join("icrl");
+    println!("xtask: {} --install {}", script.display(), icrl.display());
+    let status = Command::new(&script)
+        .arg("--install")
+        .arg(&icrl)
+        .status()
+        .with_context(|| format!("could not start {}", script.display()))?;
+    Ok(exit_code(status))
+}
+
 /// The main job, run by `cargo xtask pretrain` without arguments.
 const DEFAULT_PRETRAIN: [&str; 2] = ["--env", "car"];
 

@@ -30,6 +30,11 @@ enum Command {
     Setup,
     /// Set up, then run `cargo test --workspace [ARGS...]`.
     Test {
+        /// Instead: install Slurm (slurm-wlm, munge) when missing, start a one-node
+        /// cluster on this machine, and run a sweep and a sharded dataset through it
+        /// (tests/slurm/run.sh; as root, a few minutes).
+        #[arg(long)]
+        slurm: bool,
         /// Passed to `cargo test` verbatim (e.g. `-p safety-envs -- --nocapture`).
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
@@ -89,7 +94,8 @@ fn main() -> ExitCode {
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Setup => setup::setup().map(|()| ExitCode::SUCCESS),
-        Command::Test { args } => delegate::test(&args),
+        Command::Test { slurm: true, .. } => delegate::test_slurm(),
+        Command::Test { args, .. } => delegate::test(&args),
         Command::Pretrain { args } => delegate::icrl("pretrain", &args),
         Command::Dataset { args } => delegate::icrl("dataset", &args),
         Command::Eval { args } => delegate::icrl("eval", &args),
@@ -119,10 +125,16 @@ mod tests {
         };
         assert_eq!(args, ["--env", "car", "--help", "-x"]);
 
-        let Command::Test { args } = parse(&["test", "-p", "icrl", "--", "--nocapture"]) else {
+        let Command::Test { args, slurm } = parse(&["test", "-p", "icrl", "--", "--nocapture"])
+        else {
             panic!("not parsed as test");
         };
         assert_eq!(args, ["-p", "icrl", "--", "--nocapture"]);
+        assert!(!slurm);
+        assert!(matches!(
+            parse(&["test", "--slurm"]),
+            Command::Test { slurm: true, .. }
+        ));
     }
 
     #[test]

@@ -384,3 +384,54 @@ fn kv_cache_step_equals_full_forward() {
     let diff = (full - stepped).abs().max().double_value(&[]);
     assert!(diff < 1e-4, "{diff}");
 }
+
+#[test]
+fn trains_on_a_merged_file_of_shards() {
+    use crate::data::histories::{Shard, read_histories, write_histories};
+    let dir = fresh_dir("merged");
+    fs::create_dir_all(&dir).unwrap();
+    let mut d = DatasetConfig::paper(EnvName::DarkRoom, 2, 11);
+    d.source = Source::NoisyOptimal;
+    d.steps = 600;
+    d.cost_limits = vec![0.0, 5.0];
+    let whole = generate(&d, &|_| {}).unwrap().file;
+    let shards: Vec<PathBuf> = (0..2)
+        .map(|index| {
+            d.shard = Some(Shard { index, count: 2 });
+            let path = dir.join(format!("part{index}.h5"));
+            write_histories(&path, &generate(&d, &|_| {}).unwrap().file).unwrap();
+            path
+        })
+        .collect();
+    let merged = dir.join("all.h5");
+    let existing = safety_envs::output::Existing::Refuse;
+    crate::data::merge::merge(&merged, &shards, existing).unwrap();
+    assert_eq!(
+        read_histories(&merged, Some("darkroom")).unwrap().histories,
+        whole.histories
+    );
+    // The learner's own entry point, as `icrl pretrain --method ad --dataset all.h5`.
+    let sets: Vec<String> = [
+        "updates=4",
+        "checkpoint_every=2",
+        "batch_size=4",
+        "torch_threads=1",
+        "model.n_layers=1",
+        "model.d_model=32",
+        "model.d_ff=64",
+    ]
+    .map(String::from)
+    .to_vec();
+    let s = crate::cli::pretrain::ad(
+        "darkroom",
+        "quick",
+        Some(&merged),
+        None,
+        &sets,
+        &dir.join("runs"),
+    )
+    .unwrap();
+    assert_eq!(s.updates, 4);
+    assert_eq!(s.train_histories + s.val_histories, 4);
+    let _ = fs::remove_dir_all(&dir);
+}

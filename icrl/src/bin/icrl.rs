@@ -50,17 +50,102 @@ enum Command {
     },
     /// Evaluate checkpoints in context on held-out edge-oriented tasks: JSON, CSV, figures.
     Eval(icrl_eval::EvalArgs),
+    /// Seeds and settings as a Slurm job array (--emit slurm), then their table (--gather).
+    Sweep(SweepArgs),
 }
 
 #[derive(Debug, Args)]
+struct SweepArgs {
+    /// The grid file (TOML: env, method, preset, seeds, out, [set], [grid], [slurm]).
+    #[arg(long, value_name = "FILE")]
+    grid: PathBuf,
+    /// Write OUT/sweep.sbatch: one array task per seed and setting.
+    #[arg(long, value_parser = ["slurm"], required_unless_present = "gather")]
+    emit: Option<String>,
+    /// Evaluate every finished run's last checkpoint and write OUT/gather/table.md and table.csv.
+    #[arg(long, conflicts_with = "emit")]
+    gather: bool,
+    /// Held-out evaluation tasks per run (--gather).
+    #[arg(long, default_value_t = 16, allow_hyphen_values = true, value_parser = parse_count)]
+    tasks: usize,
+    /// Episodes per task (--gather; default: the environment's).
+    #[arg(long, allow_hyphen_values = true, value_parser = parse_count)]
+    episodes: Option<usize>,
+    /// Budgets sampled per evaluation (--gather).
+    #[arg(long, default_value_t = 100, allow_hyphen_values = true, value_parser = parse_count)]
+    n_budgets: usize,
+    /// Threads for evaluation (--gather; default: all cores).
+    #[arg(long, allow_hyphen_values = true, value_parser = parse_count)]
+    threads: Option<usize>,
+    /// Replace files written before (the script, the gathered evaluations and table).
+    #[arg(long)]
+    force: bool,
+}
+
+fn sweep(args: SweepArgs) -> anyhow::Result<()> {
+    use icrl::cli::sweep::{GatherOptions, SweepGrid, emit_slurm, gather};
+    let grid = SweepGrid::load(&args.grid)?;
+    if !args.gather {
+        let icrl = match &grid.slurm.icrl {
+            Some(p) => p.clone(),
+            None => std::env::current_exe()?,
+        };
+        let script = emit_slurm(&grid, &icrl, args.force)?;
+        println!(
+            "wrote {} ({} array tasks); submit it with:\n  sbatch {}\nthen, when the tasks are done:\n  icrl sweep --grid {} --gather",
+            script.display(),
+            grid.tasks().len(),
+            icrl::run_summary::shell_word(&script),
+            icrl::run_summary::shell_word(&args.grid)
+        );
+        return Ok(());
+    }
+    let threads = args
+        .threads
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
+    let g = gather(
+        &grid,
+        &GatherOptions {
+            tasks: args.tasks,
+            episodes: args.episodes,
+            n_budgets: args.n_budgets,
+            threads,
+            force: args.force,
+        },
+    )?;
+    for (task, why) in &g.unfinished {
+        eprintln!("task {task}: {why}");
+    }
+    print!("{}", g.table);
+    println!(
+        "{} runs evaluated, {} not finished; wrote {}",
+        g.evaluated,
+        g.unfinished.len(),
+        g.files
+            .iter()
+            .filter(|f| f.file_stem().is_some_and(|s| s == "table"))
+            .map(|f| f.display().to_string())
+            .collect::<Vec<_>>()
+            .join(", ")
+    );
+    if g.evaluated == 0 {
+        anyhow::bail!("no finished run to gather");
+    }
+    Ok(())
+}
+
+#[derive(Debug, Args)]
+#[command(args_conflicts_with_subcommands = true, subcommand_negates_reqs = true)]
 struct DatasetArgs {
+    #[command(subcommand)]
+    merge: Option<DatasetMerge>,
     /// Environment.
-    #[arg(long, value_parser = ["darkroom", "point", "car"])]
-    env: String,
+    #[arg(long, required = true, value_parser = ["darkroom", "point", "car"])]
+    env: Option<String>,
     /// Output HDF5 file (written beside it, then renamed); an existing file is
     /// refused unless --force.
-    #[arg(long)]
-    out: PathBuf,
+    #[arg(long, required = true)]
+    out: Option<PathBuf>,
     /// Pretraining tasks (centre-oriented).
     #[arg(long, default_value_t = 10, allow_hyphen_values = true, value_parser = parse_count)]
     tasks: usize,
@@ -90,10 +175,33 @@ struct DatasetArgs {
     /// the file's config.
     #[arg(long, value_name = "N", allow_hyphen_values = true, value_parser = parse_count)]
     keep_episodes: Option<usize>,
+    /// Make only the I-th of N disjoint parts of the task x cost-limit grid
+    /// (I from 0, e.g. $SLURM_ARRAY_TASK_ID); the N shards hold what one
+    /// unsharded run with the same seed holds. Join them with `icrl dataset merge`.
+    #[arg(long, value_name = "I/N")]
+    shard: Option<icrl::data::histories::Shard>,
     /// Replace an existing history file at --out (never a device, link,
     /// folder or checkpoint file).
     #[arg(long)]
     force: bool,
+}
+
+#[derive(Debug, Subcommand)]
+enum DatasetMerge {
+    /// One file over the shards of `icrl dataset --shard I/N`: its datasets are HDF5 virtual
+    /// datasets over them, read as one file by the AD learner and h5py. Refuses shards of
+    /// another grid, missing or repeated parts, and files that fail their checksum.
+    Merge {
+        /// The merged file, in the shards' folder or above it (it names them relative to itself).
+        #[arg(long)]
+        out: PathBuf,
+        /// The shard files, in any order.
+        #[arg(required = true)]
+        shards: Vec<PathBuf>,
+        /// Replace an existing history file at --out.
+        #[arg(long)]
+        force: bool,
+    },
 }
 
 /// A count (tasks, steps, episodes, threads, ...): a whole number from 0 up.
@@ -121,6 +229,25 @@ fn parse_seed(s: &str) -> Result<u64, String> {
 }
 
 fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
+    if let Some(DatasetMerge::Merge { out, shards, force }) = args.merge {
+        let r = icrl::data::merge::merge(
+            &out,
+            &shards,
+            safety_envs::output::Existing::from_force(force),
+        )?;
+        println!(
+            "wrote {}: {} histories, {} steps, virtual datasets over {} shards ({} bytes of its own)",
+            r.out.display(),
+            r.histories,
+            r.steps,
+            r.shards,
+            r.bytes
+        );
+        return Ok(());
+    }
+    let (Some(env), Some(out)) = (args.env, args.out) else {
+        anyhow::bail!("icrl dataset needs --env and --out");
+    };
     let source = match args.source.as_str() {
         "noisy-optimal" => icrl::data::dataset::Source::NoisyOptimal,
         _ => icrl::data::dataset::Source::PpoLagrangian,
@@ -130,8 +257,8 @@ fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
         .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()));
     let keep_episodes = args.keep_episodes;
     let r = icrl::cli::dataset::dataset_command(&icrl::cli::dataset::DatasetCommand {
-        env: args.env,
-        out: args.out,
+        env,
+        out,
         tasks: args.tasks,
         steps: args.steps,
         cost_limits: args.cost_limits,
@@ -140,6 +267,7 @@ fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
         source,
         physics_steps_per_action: args.physics_steps_per_action,
         keep_episodes: args.keep_episodes,
+        shard: args.shard,
         force: args.force,
     })?;
     println!(
@@ -198,6 +326,11 @@ struct PretrainArgs {
     /// Folder that receives the run folder.
     #[arg(long, default_value = "runs")]
     out: PathBuf,
+    /// Resume the run of this env and method under --out that trained furthest, if there is
+    /// one (done if it has finished), else start one there: a requeued job array task
+    /// (`icrl sweep`) continues its own run instead of starting again.
+    #[arg(long, conflicts_with = "resume")]
+    resume_in_out: bool,
 }
 
 /// `pretrain --method ad`: safe supervised pretraining on a history file
@@ -230,7 +363,24 @@ fn pretrain_ad(args: PretrainArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn pretrain(args: PretrainArgs) -> anyhow::Result<()> {
+fn pretrain(mut args: PretrainArgs) -> anyhow::Result<()> {
+    if args.resume_in_out {
+        use icrl::cli::pretrain::{InOut, run_in_out};
+        match run_in_out(&args.out, &args.env, &args.method, &args.set)? {
+            InOut::Start => {}
+            InOut::Resume(run) => {
+                eprintln!("--resume-in-out: resuming {}", run.display());
+                args.resume = Some(run);
+            }
+            InOut::Finished { run, updates } => {
+                println!(
+                    "run {} finished: {updates} updates, as its config asks; nothing to do",
+                    run.display()
+                );
+                return Ok(());
+            }
+        }
+    }
     if args.method == "ad" {
         return pretrain_ad(args);
     }
@@ -384,6 +534,7 @@ fn main() -> ExitCode {
         }
         Command::Dataset(args) => dataset(args),
         Command::Eval(args) => icrl_eval::eval(args),
+        Command::Sweep(args) => sweep(args),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -7,7 +7,7 @@ use safety_envs::EnvName;
 use safety_envs::output::{Existing, Lock};
 
 use crate::data::dataset::{DatasetConfig, DatasetError, Source, generate};
-use crate::data::histories::HistoryError;
+use crate::data::histories::{HistoryError, Shard};
 
 /// The lock of one output file, `.NAME.lock` beside it (removed at the end):
 /// a second `dataset` writing the same file is refused with the first's pid.
@@ -39,6 +39,8 @@ pub struct DatasetCommand {
     pub physics_steps_per_action: Option<usize>,
     /// Episodes kept per history (log-spaced); `None` keeps all.
     pub keep_episodes: Option<usize>,
+    /// Make only this part of the grid (`--shard I/N`).
+    pub shard: Option<Shard>,
     /// Replace an existing history file at `out` (`--force`).
     pub force: bool,
 }
@@ -73,6 +75,7 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
     cfg.source = cmd.source;
     cfg.physics_steps_per_action = cmd.physics_steps_per_action;
     cfg.keep_episodes = cmd.keep_episodes;
+    cfg.shard = cmd.shard;
     if let Some(c) = &cmd.cost_limits {
         cfg.cost_limits = c.clone();
     }
@@ -92,6 +95,9 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
     let existing = Existing::from_force(cmd.force);
     crate::data::histories::check_output_path(&cmd.out, existing)?;
     let _lock = output_lock(&cmd.out)?;
+    // This shard's part of the grid (all of it unsharded).
+    let grid = cfg.tasks * cfg.cost_limits.len();
+    let histories = cfg.shard.map_or(grid, |s| s.range(grid).len());
     // All histories are held, then concatenated for writing: check they fit.
     {
         let probe = safety_envs::make_env(env, &safety_envs::EnvOptions::default())?;
@@ -100,7 +106,7 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
             safety_envs::Space::Discrete { .. } => 1.0,
             safety_envs::Space::Box { low, .. } => low.len() as f64,
         };
-        let steps = cfg.tasks as f64 * cfg.cost_limits.len() as f64 * cfg.steps as f64;
+        let steps = histories as f64 * cfg.steps as f64;
         let mut m = crate::guard::MemoryEstimate {
             levers: "--tasks, --steps or the number of --cost-limits".into(),
             ..Default::default()
@@ -117,7 +123,7 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
             cfg.threads
         )));
     }
-    let total = (cfg.tasks * cfg.cost_limits.len() * cfg.steps) as u64;
+    let total = (histories * cfg.steps) as u64;
     let bar = indicatif::ProgressBar::new(total);
     bar.set_style(
         indicatif::ProgressStyle::with_template(
@@ -126,12 +132,13 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
         .unwrap_or_else(|_| indicatif::ProgressStyle::default_bar()),
     );
     bar.set_prefix(format!(
-        "{} {}",
+        "{} {}{}",
         cmd.env,
         match cmd.source {
             Source::PpoLagrangian => "ppo-lagrangian",
             Source::NoisyOptimal => "noisy-optimal",
-        }
+        },
+        cmd.shard.map_or(String::new(), |s| format!(" shard {s}"))
     ));
     let started = std::time::Instant::now();
     let data = generate(&cfg, &|n| bar.inc(n as u64))?;

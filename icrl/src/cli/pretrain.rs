@@ -78,6 +78,61 @@ pub fn eppo(
     Ok(report)
 }
 
+/// What `pretrain --resume-in-out` does in its `--out` folder.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub enum InOut {
+    /// No run with a checkpoint there: start one.
+    Start,
+    /// Continue this run folder.
+    Resume(PathBuf),
+    /// This run has done every update its config (with the `--set`s) asks for.
+    Finished { run: PathBuf, updates: u64 },
+}
+
+/// `pretrain --resume-in-out`: the run of `env` and `method` in `out` that
+/// trained furthest is resumed, or is finished when it has done the updates
+/// its `config.toml` with `sets` asks for; with none, a run starts. This is
+/// how a job array task that Slurm requeued (preempted, or stopped ahead of
+/// its time limit) continues its own run instead of starting again.
+pub fn run_in_out(
+    out: &Path,
+    env: &str,
+    method: &str,
+    sets: &[String],
+) -> Result<InOut, CheckpointError> {
+    let Some((run, _, updates)) = RunDir::furthest_in(out, env, method)? else {
+        return Ok(InOut::Start);
+    };
+    let path = run.config_path();
+    let invalid = |problem: String| CheckpointError::Invalid {
+        path: path.clone(),
+        problem,
+        fix: "restore the run's config.toml, or move the run folder away to start again".into(),
+    };
+    let mut table = fs::read_to_string(&path)
+        .map_err(|e| invalid(e.to_string()))?
+        .parse::<toml::Table>()
+        .map_err(|e| invalid(e.to_string()))?;
+    crate::presets::apply_overrides(&mut table, sets).map_err(|e| invalid(e.to_string()))?;
+    let key = if method == "ad" {
+        "updates"
+    } else {
+        "total_updates"
+    };
+    let total = table
+        .get(key)
+        .and_then(toml::Value::as_integer)
+        .ok_or_else(|| invalid(format!("no integer {key}")))?;
+    Ok(if updates as i64 >= total {
+        InOut::Finished {
+            run: run.path,
+            updates,
+        }
+    } else {
+        InOut::Resume(run.path)
+    })
+}
+
 /// Settings a resumed EPPO run may change: its length, how it saves, and
 /// the machine it runs on. Any other change (`lr`, `seed`, the model, ...)
 /// would make one run of two configurations, and is refused.

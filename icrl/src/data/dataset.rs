@@ -26,7 +26,7 @@ use safety_envs::{
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use crate::data::histories::{DatasetInfo, History, HistoryFile};
+use crate::data::histories::{DatasetInfo, History, HistoryFile, Shard};
 use crate::ppo_lagrangian::{self, PpoLagConfig, PpoLagError, UpdateMetrics};
 use crate::task_seeds::{PretrainTasks, pretrain_task_seed};
 
@@ -84,6 +84,11 @@ pub struct DatasetConfig {
     /// logarithm of the episode index ([`log_spaced`]); `None` keeps all.
     #[serde(default)]
     pub keep_episodes: Option<usize>,
+    /// Make only this part of the task x cost-limit grid (`--shard I/N`);
+    /// `None`: all of it. Each history's seeds come from its place in the
+    /// whole grid, so the parts together are the unsharded dataset.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub shard: Option<Shard>,
 }
 
 /// `keep` episode indices out of `n`, spaced evenly in log(index + 1):
@@ -125,6 +130,7 @@ impl DatasetConfig {
             ppo,
             noise_end_fraction: 0.8,
             keep_episodes: None,
+            shard: None,
         }
     }
 
@@ -162,6 +168,18 @@ impl DatasetConfig {
             return Err(DatasetError::Config(format!(
                 "noise_end_fraction {} must lie in (0, 1]",
                 self.noise_end_fraction
+            )));
+        }
+        let grid = self.tasks * self.cost_limits.len();
+        if let Some(s) = self.shard
+            && s.count > grid
+        {
+            return Err(DatasetError::Config(format!(
+                "shard {s}: {} shards of a grid of {grid} histories ({} tasks x {} cost limits) \
+                 would leave some empty; use at most {grid}",
+                s.count,
+                self.tasks,
+                self.cost_limits.len()
             )));
         }
         Ok(env)
@@ -207,9 +225,12 @@ pub fn generate(
     let tasks: Vec<Task> = (0..cfg.tasks as u64)
         .map(|i| sample_task(&spawn, Orientation::Centre, pretrain_task_seed(cfg.seed, i)))
         .collect::<Result<_, _>>()?;
-    let jobs: Vec<(usize, f32)> = (0..cfg.tasks)
+    // (job index in the whole grid, task, cost limit): the index seeds the run.
+    let grid: Vec<(usize, f32)> = (0..cfg.tasks)
         .flat_map(|t| cfg.cost_limits.iter().map(move |&c| (t, c)))
         .collect();
+    let part = cfg.shard.map_or(0..grid.len(), |s| s.range(grid.len()));
+    let jobs: Vec<(usize, (usize, f32))> = part.clone().map(|j| (j, grid[j])).collect();
     let ppo = PpoLagConfig {
         total_steps: cfg.steps,
         ..cfg.ppo.clone()
@@ -223,8 +244,7 @@ pub fn generate(
         .map_err(|e| DatasetError::Config(format!("thread pool: {e}")))?;
     let results: Vec<Result<(History, Vec<UpdateMetrics>), DatasetError>> = pool.install(|| {
         jobs.par_iter()
-            .enumerate()
-            .map(|(j, &(t, limit))| {
+            .map(|&(j, (t, limit))| {
                 // Small networks: one libtorch thread per worker beats sharing.
                 tch::set_num_threads(1);
                 let run_seed = splitmix64(cfg.seed ^ splitmix64(j as u64));
@@ -287,6 +307,8 @@ pub fn generate(
                 action_n,
                 grid_size: spawn.grid_size,
                 physics_steps_per_action,
+                grid_histories: grid.len(),
+                shard: cfg.shard,
             },
             histories,
         },
@@ -594,6 +616,68 @@ mod tests {
         assert!(!d.file.histories[1].is_empty());
         let json: serde_json::Value = serde_json::from_str(&d.file.info.config).unwrap();
         assert_eq!(json["dataset"]["steps"], 1024);
+    }
+
+    /// Every value's bits, so that -0.0 against 0.0 or two NaNs count.
+    fn bits(h: &History) -> Vec<u32> {
+        [
+            &h.observations,
+            &h.next_observations,
+            &h.actions,
+            &h.rewards,
+            &h.costs,
+        ]
+        .iter()
+        .flat_map(|v| v.iter().map(|x| x.to_bits()))
+        .chain([h.cost_limit.to_bits()])
+        .collect()
+    }
+
+    #[test]
+    fn three_shards_hold_the_unsharded_histories_bit_for_bit() {
+        let mut cfg = DatasetConfig::paper(EnvName::DarkRoom, 2, 4);
+        cfg.steps = 512;
+        cfg.cost_limits = vec![0.0, 5.0];
+        let whole = generate(&cfg, &|_| {}).unwrap().file;
+        assert_eq!((whole.info.grid_histories, whole.info.shard), (4, None));
+        let mut union = Vec::new();
+        for index in 0..3 {
+            let shard = Shard { index, count: 3 };
+            cfg.shard = Some(shard);
+            let part = generate(&cfg, &|_| {}).unwrap().file;
+            // A shard records which part it is.
+            assert_eq!(part.info.shard, Some(shard));
+            assert_eq!(part.info.grid_histories, 4);
+            assert_eq!(part.info.history_ids(), shard.range(4));
+            union.extend(part.histories);
+        }
+        assert_eq!(union.len(), whole.histories.len());
+        for (a, b) in union.iter().zip(&whole.histories) {
+            assert_eq!(a.task, b.task);
+            assert_eq!((&a.terminals, &a.timeouts), (&b.terminals, &b.timeouts));
+            assert!(
+                bits(a) == bits(b),
+                "a shard's history differs from the unsharded one"
+            );
+        }
+        // More shards than histories would leave some empty.
+        cfg.shard = Some(Shard { index: 0, count: 5 });
+        let e = generate(&cfg, &|_| {}).unwrap_err().to_string();
+        assert!(e.contains("at most 4"), "{e}");
+    }
+
+    #[test]
+    fn shards_parse_as_i_of_n() {
+        assert_eq!("1/3".parse::<Shard>(), Ok(Shard { index: 1, count: 3 }));
+        for bad in ["3/3", "1", "a/3", "-1/3", "0/0"] {
+            let e = bad.parse::<Shard>().unwrap_err();
+            assert!(e.contains("I/N"), "{bad}: {e}");
+        }
+        // Contiguous parts that cover the grid once.
+        let parts: Vec<_> = (0..3)
+            .map(|i| Shard { index: i, count: 3 }.range(4))
+            .collect();
+        assert_eq!(parts, vec![0..1, 1..2, 2..4]);
     }
 
     #[test]

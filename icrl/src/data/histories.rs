@@ -16,7 +16,7 @@
 //! | `rewards`, `costs` | (N,) | float32 | received for the action |
 //! | `terminals` | (N,) | float32 | 1 where the episode reached the goal (no bootstrap) |
 //! | `timeouts` | (N,) | float32 | 1 where the time limit ended the episode |
-//! | `history_id` | (N,) | int64 | which history the step belongs to, `0..H`, non-decreasing |
+//! | `history_id` | (N,) | int64 | which history of the grid the step belongs to, `0..H` (a shard: its part of the grid), non-decreasing |
 //! | `episode_id` | (N,) | int64 | episode index within its history, from 0 |
 //! | `cost_limit` | (H,) | float32 | the history's cost limit |
 //! | `task_goal` | (H, 2) | int64 | goal cell (row, col) |
@@ -28,7 +28,13 @@
 //! continuous space), `grid_size` (uint64), `physics_steps_per_action`
 //! (uint64: Point and Car, the MuJoCo physics steps per agent action the
 //! histories were played with, the macro action; 0 for SafeDarkRoom, which has
-//! no physics). A Point or Car file without it was made when an agent action
+//! no physics), `grid_histories` (uint64: histories in the whole task x
+//! cost-limit grid; absent in files from before sharding: the file's own
+//! count). A shard (`icrl dataset --shard I/N`) also records `shard_index`
+//! and `shard_count` (uint64), holds the histories `I*G/N..(I+1)*G/N` of
+//! the grid's `G`, and numbers them in `history_id` as the whole grid does, so
+//! that the shards side by side read as one file (`icrl dataset merge`,
+//! [`crate::data::merge`]). A Point or Car file without it was made when an agent action
 //! was 5 physics steps (before 2026-11-30) and is refused: its steps are 10x
 //! shorter than today's environment's. Every array is chunked and
 //! deflate-compressed. Episodes split at `terminals | timeouts`; every history
@@ -50,17 +56,19 @@
 use std::fmt;
 use std::ops::Range;
 use std::path::{Path, PathBuf};
+use std::str::FromStr;
 
 use hdf5::types::VarLenUnicode;
 use safety_envs::output::{self, Existing, OutputError};
 use safety_envs::{Cell, EnvName, OLD_PHYSICS_STEPS_PER_ACTION, PHYSICS_STEPS_PER_ACTION, Task};
+use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 /// Version of the layout above; readers refuse any other.
 pub const FORMAT_VERSION: u32 = 1;
 
 /// Bytes of the user block that holds the file's checksum.
-const USER_BLOCK: usize = 512;
+pub(crate) const USER_BLOCK: usize = 512;
 /// How the checksum line in the user block starts.
 const CHECKSUM_TAG: &[u8] = b"icrl-histories sha256 ";
 
@@ -87,7 +95,7 @@ fn body_sha256(path: &Path) -> std::io::Result<String> {
 }
 
 /// Writes the checksum line into the user block of a finished file.
-fn seal(path: &Path) -> std::io::Result<()> {
+pub(crate) fn seal(path: &Path) -> std::io::Result<()> {
     use std::io::{Seek, SeekFrom, Write};
     let line = [CHECKSUM_TAG, body_sha256(path)?.as_bytes(), b"\n"].concat();
     let mut f = std::fs::OpenOptions::new().write(true).open(path)?;
@@ -96,14 +104,14 @@ fn seal(path: &Path) -> std::io::Result<()> {
     f.sync_all()
 }
 
-/// Checks the checksum in the user block. `Ok(false)`: the file has no
-/// checksum (written elsewhere); an error: the bytes do not match it.
-fn verify_seal(path: &Path) -> Result<bool, Problem> {
+/// Checks the checksum in the user block and returns it. `Ok(None)`: the
+/// file has no checksum (written elsewhere); an error: the bytes do not match it.
+pub(crate) fn verify_seal(path: &Path) -> Result<Option<String>, Problem> {
     use std::io::Read;
     let mut head = vec![0u8; CHECKSUM_TAG.len() + 64];
     let mut f = std::fs::File::open(path).map_err(|e| Problem::Unreadable(e.to_string()))?;
     if f.read_exact(&mut head).is_err() || !head.starts_with(CHECKSUM_TAG) {
-        return Ok(false);
+        return Ok(None);
     }
     let want = String::from_utf8_lossy(&head[CHECKSUM_TAG.len()..]).into_owned();
     let got = body_sha256(path).map_err(|e| Problem::Unreadable(e.to_string()))?;
@@ -113,7 +121,7 @@ fn verify_seal(path: &Path) -> Result<bool, Problem> {
              after writing; make it again with `icrl dataset`"
         )));
     }
-    Ok(true)
+    Ok(Some(got))
 }
 
 /// Rows per chunk of the per-step arrays.
@@ -192,11 +200,68 @@ pub struct HistoryError {
 }
 
 impl HistoryError {
-    fn new(path: &Path, problem: Problem) -> Self {
+    pub(crate) fn new(path: &Path, problem: Problem) -> Self {
         HistoryError {
             path: path.to_path_buf(),
             problem,
         }
+    }
+}
+
+/// One of `count` disjoint parts of a task x cost-limit grid, `index` from 0
+/// (`--shard I/N`, I in 0..N, as Slurm's `$SLURM_ARRAY_TASK_ID` with
+/// `--array=0-(N-1)`).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(try_from = "String", into = "String")]
+pub struct Shard {
+    pub index: usize,
+    pub count: usize,
+}
+
+impl Shard {
+    /// The grid's histories (in job order) this part holds: contiguous,
+    /// so the parts in index order are the grid in order.
+    pub fn range(self, grid: usize) -> Range<usize> {
+        self.index * grid / self.count..(self.index + 1) * grid / self.count
+    }
+}
+
+impl fmt::Display for Shard {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        write!(f, "{}/{}", self.index, self.count)
+    }
+}
+
+impl FromStr for Shard {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Self, String> {
+        let bad = || {
+            format!(
+                "{s:?} is not a shard: write I/N, the I-th of N parts counted from 0 (0/3, 1/3, 2/3)"
+            )
+        };
+        let (i, n) = s.trim().split_once('/').ok_or_else(bad)?;
+        let (index, count) = (
+            i.trim().parse::<usize>().map_err(|_| bad())?,
+            n.trim().parse::<usize>().map_err(|_| bad())?,
+        );
+        if index >= count {
+            return Err(bad());
+        }
+        Ok(Shard { index, count })
+    }
+}
+
+impl TryFrom<String> for Shard {
+    type Error = String;
+    fn try_from(s: String) -> Result<Self, String> {
+        s.parse()
+    }
+}
+
+impl From<Shard> for String {
+    fn from(s: Shard) -> String {
+        s.to_string()
     }
 }
 
@@ -219,6 +284,20 @@ pub struct DatasetInfo {
     /// Point and Car: MuJoCo physics steps per agent action (the macro
     /// action) the histories were played with; `None` for SafeDarkRoom.
     pub physics_steps_per_action: Option<usize>,
+    /// Histories in the whole task x cost-limit grid.
+    pub grid_histories: usize,
+    /// The part of the grid a shard holds; `None`: all of it.
+    pub shard: Option<Shard>,
+}
+
+impl DatasetInfo {
+    /// `history_id`s of the file's histories: their places in the grid.
+    pub fn history_ids(&self) -> Range<usize> {
+        match self.shard {
+            Some(s) => s.range(self.grid_histories),
+            None => 0..self.grid_histories,
+        }
+    }
 }
 
 /// One learning history: every step of every episode of one learning run, in order.
@@ -567,6 +646,18 @@ pub fn write_histories_to(
             "a discrete action space needs action_n > 0 and action_dim 1, got {n} and {d}"
         ))));
     }
+    let ids = file.info.history_ids();
+    if ids.len() != file.histories.len() || ids.end > file.info.grid_histories {
+        return Err(err(Problem::Invalid(format!(
+            "{} histories, but {} of a grid of {} holds {} ({ids:?})",
+            file.histories.len(),
+            file.info
+                .shard
+                .map_or("all".to_string(), |s| format!("shard {s}")),
+            file.info.grid_histories,
+            ids.len()
+        ))));
+    }
     let n_obstacles = file.histories[0].task.obstacles.len();
     for (i, h) in file.histories.iter().enumerate() {
         h.check(i, &file.info).map_err(err)?;
@@ -610,7 +701,7 @@ fn write_raw(tmp: &Path, file: &HistoryFile, n_obstacles: usize) -> hdf5::Result
     let timeouts = flag(&|h| &h.timeouts);
     let mut history_id = Vec::with_capacity(n);
     let mut episode_id = Vec::with_capacity(n);
-    for (i, hist) in file.histories.iter().enumerate() {
+    for (i, hist) in info.history_ids().zip(&file.histories) {
         for (e, r) in hist.episodes().into_iter().enumerate() {
             for _ in r {
                 history_id.push(i as i64);
@@ -659,16 +750,25 @@ fn write_raw(tmp: &Path, file: &HistoryFile, n_obstacles: usize) -> hdf5::Result
     put(&f, "task_goal", &goals, &[h, 2])?;
     put(&f, "task_obstacles", &obstacles, &[h, n_obstacles, 2])?;
 
-    let text = |s: &str| -> hdf5::Result<VarLenUnicode> {
-        s.parse::<VarLenUnicode>()
-            .map_err(|e| hdf5::Error::from(e.to_string().as_str()))
-    };
+    write_attrs(&f, info)?;
+    f.flush()?;
+    Ok(())
+}
+
+/// A string attribute.
+pub(crate) fn put_text(f: &hdf5::File, name: &str, value: &str) -> hdf5::Result<()> {
+    let text = value
+        .parse::<VarLenUnicode>()
+        .map_err(|e| hdf5::Error::from(e.to_string().as_str()))?;
     f.new_attr::<VarLenUnicode>()
-        .create("env")?
-        .write_scalar(&text(&info.env)?)?;
-    f.new_attr::<VarLenUnicode>()
-        .create("config")?
-        .write_scalar(&text(&info.config)?)?;
+        .create(name)?
+        .write_scalar(&text)
+}
+
+/// The file attributes of the layout, from `info`.
+pub(crate) fn write_attrs(f: &hdf5::File, info: &DatasetInfo) -> hdf5::Result<()> {
+    put_text(f, "env", &info.env)?;
+    put_text(f, "config", &info.config)?;
     f.new_attr::<u64>()
         .create("seed")?
         .write_scalar(&info.seed)?;
@@ -684,12 +784,18 @@ fn write_raw(tmp: &Path, file: &HistoryFile, n_obstacles: usize) -> hdf5::Result
             "physics_steps_per_action",
             info.physics_steps_per_action.unwrap_or(0),
         ),
-    ] {
+        ("grid_histories", info.grid_histories),
+    ]
+    .into_iter()
+    .chain(
+        info.shard
+            .into_iter()
+            .flat_map(|s| [("shard_index", s.index), ("shard_count", s.count)]),
+    ) {
         f.new_attr::<u64>()
             .create(name)?
             .write_scalar(&(v as u64))?;
     }
-    f.flush()?;
     Ok(())
 }
 
@@ -703,7 +809,7 @@ pub fn read_histories(
     if !path.exists() {
         return Err(err(Problem::Missing));
     }
-    if !verify_seal(path).map_err(err)? {
+    if verify_seal(path).map_err(err)?.is_none() {
         eprintln!(
             "warning: {}: no icrl checksum (written elsewhere or by an older icrl): damage cannot be detected before libhdf5 reads it",
             path.display()
@@ -711,6 +817,8 @@ pub fn read_histories(
     }
     let f = hdf5::File::open(path).map_err(|e| err(Problem::Unreadable(e.to_string())))?;
     let malformed = |what: String| err(Problem::Malformed(what));
+    // A merged file: its shards are checked before libhdf5 reads through to them.
+    crate::data::merge::verify_shards(&f, path)?;
 
     let info = read_info(&f, path, expected_env)?;
 
@@ -765,6 +873,16 @@ pub fn read_histories(
         )));
     }
 
+    let ids = info.history_ids();
+    if ids.len() != h {
+        return Err(malformed(format!(
+            "it holds {h} histories, but {} of a grid of {} is {} ({ids:?})",
+            info.shard
+                .map_or("all".to_string(), |s| format!("shard {s}")),
+            info.grid_histories,
+            ids.len()
+        )));
+    }
     // Split the flat arrays by history_id (non-decreasing, every id present).
     // Out of order, a history would look empty though its steps are there.
     if let Some(k) = (1..n).find(|&k| history_id[k] < history_id[k - 1]) {
@@ -779,7 +897,7 @@ pub fn read_histories(
     let mut start = 0usize;
     for i in 0..h {
         let mut end = start;
-        while end < n && history_id[end] == i as i64 {
+        while end < n && history_id[end] == (ids.start + i) as i64 {
             end += 1;
         }
         if end == start {
@@ -834,7 +952,7 @@ pub fn read_histories(
     }
     if start != n {
         return Err(malformed(format!(
-            "history_id is not sorted 0..{h}: step {start} has id {}",
+            "history_id is not sorted {ids:?}: step {start} has id {}",
             history_id[start]
         )));
     }
@@ -882,14 +1000,22 @@ fn read_info(
         }));
     }
     let action_n = u64_attr("action_n")? as usize;
-    // Absent in files from before it was recorded: refused for Point and Car.
-    let physics_steps_per_action = match f.attr("physics_steps_per_action") {
-        Ok(a) => a
-            .read_scalar::<u64>()
-            .map_err(|e| malformed(format!("attribute physics_steps_per_action: {e}")))?
-            as usize,
-        Err(_) => 0,
+    let optional_u64 = |name: &str| -> Result<Option<u64>, HistoryError> {
+        match f.attr(name) {
+            Ok(a) => a
+                .read_scalar::<u64>()
+                .map(Some)
+                .map_err(|e| malformed(format!("attribute {name}: {e}"))),
+            Err(_) => Ok(None),
+        }
     };
+    // Absent in files from before it was recorded: refused for Point and Car.
+    let physics_steps_per_action = optional_u64("physics_steps_per_action")?.unwrap_or(0) as usize;
+    // Absent in files from before sharding: the file's own histories.
+    let histories = f
+        .dataset("cost_limit")
+        .map(|d| d.shape().first().copied().unwrap_or(0))
+        .unwrap_or(0);
     let has_physics = env
         .parse::<EnvName>()
         .ok()
@@ -908,6 +1034,19 @@ fn read_info(
         grid_size: u64_attr("grid_size")? as usize,
         physics_steps_per_action: (physics_steps_per_action > 0)
             .then_some(physics_steps_per_action),
+        grid_histories: optional_u64("grid_histories")?.map_or(histories, |g| g as usize),
+        shard: match (optional_u64("shard_index")?, optional_u64("shard_count")?) {
+            (None, None) => None,
+            (Some(index), Some(count)) if index < count => Some(Shard {
+                index: index as usize,
+                count: count as usize,
+            }),
+            (i, c) => {
+                return Err(malformed(format!(
+                    "shard_index {i:?} and shard_count {c:?} do not name one part of a grid"
+                )));
+            }
+        },
     };
     if info.action_n.is_some() && info.action_dim != 1 {
         return Err(malformed(format!(
@@ -919,13 +1058,13 @@ fn read_info(
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
     use safety_envs::{Orientation, SpawnConfig, sample_task};
 
-    fn tiny_file(histories: usize) -> HistoryFile {
+    pub(crate) fn tiny_file(histories: usize) -> HistoryFile {
         let cfg = SpawnConfig::darkroom();
-        let histories = (0..histories)
+        let histories: Vec<History> = (0..histories)
             .map(|i| {
                 let task = sample_task(&cfg, Orientation::Centre, i as u64).unwrap();
                 let mut h = History::new(task, 2.5 * i as f32);
@@ -955,12 +1094,14 @@ mod tests {
                 action_n: Some(5),
                 grid_size: 9,
                 physics_steps_per_action: None,
+                grid_histories: histories.len(),
+                shard: None,
             },
             histories,
         }
     }
 
-    fn tmpdir(name: &str) -> PathBuf {
+    pub(crate) fn tmpdir(name: &str) -> PathBuf {
         let d = std::env::temp_dir().join(format!("icrl-histories-{name}-{}", std::process::id()));
         std::fs::create_dir_all(&d).unwrap();
         d
@@ -1126,6 +1267,10 @@ mod tests {
             put(f, "task_goal", &[0i64; 6], &[3, 2]).unwrap();
             f.unlink("task_obstacles").unwrap();
             put(f, "task_obstacles", &[0i64; 150], &[3, 25, 2]).unwrap();
+            f.attr("grid_histories")
+                .unwrap()
+                .write_scalar(&3u64)
+                .unwrap();
         });
         let (p, msg) = problem_of(&path, None);
         assert!(matches!(p, Problem::Empty(_)), "{msg}");
@@ -1261,17 +1406,16 @@ mod tests {
         std::fs::remove_dir_all(dir).unwrap();
     }
 
-    /// Opens a written file with Python's h5py and checks names, shapes and
-    /// dtypes. Fails (does not skip) when python3 or h5py is missing: the test
-    /// set-up (`cargo xtask test`) installs h5py.
-    #[test]
-    fn h5py_reads_the_layout() {
-        let dir = tmpdir("h5py");
-        let path = dir.join("h.h5");
-        write_histories(&path, &tiny_file(3)).unwrap();
+    /// Opens a written file of `tiny_file(3)`'s histories with Python's
+    /// h5py and checks names, shapes, dtypes and values; `merged`: every
+    /// dataset is a virtual dataset over shards (no chunks or compression of
+    /// its own). Fails (does not skip) when python3 or h5py is missing: the
+    /// test set-up (`cargo xtask test`) installs h5py.
+    pub(crate) fn h5py_check(path: &Path, merged: bool) {
         let script = r#"
 import sys, h5py
 f = h5py.File(sys.argv[1], "r")
+merged = sys.argv[2] == "merged"
 want = {
     "observations": ((15, 2), "float32"), "next_observations": ((15, 2), "float32"),
     "actions": ((15, 1), "float32"), "rewards": ((15,), "float32"), "costs": ((15,), "float32"),
@@ -1284,20 +1428,27 @@ assert set(f.keys()) == set(want), sorted(f.keys())
 for name, (shape, dtype) in want.items():
     d = f[name]
     assert d.shape == shape and str(d.dtype) == dtype, (name, d.shape, d.dtype)
-    assert d.compression == "gzip" and d.chunks is not None, (name, d.compression, d.chunks)
+    if merged:
+        assert d.is_virtual and len(d.virtual_sources()) == 3, (name, d.is_virtual)
+    else:
+        assert d.compression == "gzip" and d.chunks is not None, (name, d.compression, d.chunks)
 a = f.attrs
 assert a["env"] == "darkroom" and int(a["format_version"]) == 1 and int(a["seed"]) == 7, dict(a)
 assert int(a["action_n"]) == 5 and int(a["obs_dim"]) == 2
 assert int(a["physics_steps_per_action"]) == 0, dict(a)
+assert int(a["grid_histories"]) == 3 and "shard_index" not in a, dict(a)
 assert list(f["episode_id"][:5]) == [0, 0, 0, 1, 1]
 assert list(f["history_id"][:]) == [0] * 5 + [1] * 5 + [2] * 5
 assert float(f["rewards"][:].sum()) == 3.0
+assert list(f["observations"][10]) == [20.0, -20.0], f["observations"][10]
+assert list(f["cost_limit"][:]) == [0.0, 2.5, 5.0]
 print("h5py ok")
 "#;
         let out = std::process::Command::new("python3")
             .arg("-c")
             .arg(script)
-            .arg(&path)
+            .arg(path)
+            .arg(if merged { "merged" } else { "one" })
             .output();
         let out = match out {
             Ok(o) => o,
@@ -1311,6 +1462,14 @@ print("h5py ok")
             "h5py is missing: run `pip install h5py` (cargo xtask test does): {stderr}"
         );
         assert!(out.status.success(), "h5py check failed: {stderr}");
+    }
+
+    #[test]
+    fn h5py_reads_the_layout() {
+        let dir = tmpdir("h5py");
+        let path = dir.join("h.h5");
+        write_histories(&path, &tiny_file(3)).unwrap();
+        h5py_check(&path, false);
         std::fs::remove_dir_all(dir).unwrap();
     }
 }

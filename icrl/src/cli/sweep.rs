@@ -1,0 +1,737 @@
+//! `icrl sweep`: seeds and settings as a Slurm job array, then the finished
+//! runs gathered into one table.
+//!
+//! A grid file (TOML) names one pretraining command and what varies:
+//!
+//! ```toml
+//! env = "darkroom"
+//! method = "eppo"          # or "ad", with dataset = "FILE"
+//! preset = "quick"
+//! seeds = [0, 1]
+//! out = "runs/sweep"       # relative to this file; on a filesystem every node sees
+//! [set]                    # --set for every run
+//! total_updates = 2000
+//! [grid]                   # one run per seed x combination of these values
+//! lr = [1e-4, 3e-4]
+//! [slurm]                  # optional: partition, account, time, updates_per_second,
+//! partition = "cpu"        # cpus_per_task, mem, gpus, extra (more #SBATCH lines), icrl
+//! ```
+//!
+//! `--emit slurm` writes `OUT/sweep.sbatch`: one array task per (setting,
+//! seed), each a plain `icrl pretrain ... --out OUT/task_K --resume-in-out`,
+//! so a task that Slurm requeues (`--requeue`: preempted, or stopped by the
+//! `--signal` ahead of its time limit, which the script turns into a
+//! checkpoint and a requeue) continues its own run. `--gather` evaluates the
+//! last checkpoint of every finished run and writes `OUT/gather/table.md`
+//! and `table.csv`: per setting, mean and standard error over seeds.
+
+use std::collections::BTreeMap;
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+
+use safety_envs::EnvName;
+use serde::Deserialize;
+use thiserror::Error;
+
+use crate::cli::pretrain::{InOut, run_in_out};
+use crate::run_summary::shell_word;
+
+/// What can go wrong with a sweep.
+#[derive(Debug, Error)]
+pub enum SweepError {
+    #[error("grid file {path}: {problem}")]
+    Grid { path: PathBuf, problem: String },
+    #[error("{0}")]
+    Io(String),
+    #[error(transparent)]
+    Output(#[from] safety_envs::output::OutputError),
+    #[error(transparent)]
+    Checkpoint(#[from] crate::checkpoint::CheckpointError),
+    #[error(transparent)]
+    Eval(#[from] crate::eval::error::EvalCmdError),
+}
+
+/// Where the array runs (all optional).
+#[derive(Clone, Debug, Default, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SlurmOptions {
+    pub partition: Option<String>,
+    pub account: Option<String>,
+    /// Time limit per task (`HH:MM:SS`); default: from the updates per second.
+    pub time: Option<String>,
+    /// Measured speed of one run on the cluster; default: this project's
+    /// measurement for the preset, where there is one.
+    pub updates_per_second: Option<f64>,
+    /// Default: the preset's threads.
+    pub cpus_per_task: Option<usize>,
+    /// Default: the learner's memory estimate, with room to spare.
+    pub mem: Option<String>,
+    /// Default: 1 for a `device = "cuda"` preset, else none.
+    pub gpus: Option<usize>,
+    /// More `#SBATCH` options, e.g. `"--qos=long"`.
+    #[serde(default)]
+    pub extra: Vec<String>,
+    /// The `icrl` binary the tasks run; default: this one.
+    pub icrl: Option<PathBuf>,
+}
+
+/// A grid file, as written.
+#[derive(Clone, Debug, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SweepGrid {
+    pub env: String,
+    #[serde(default = "default_method")]
+    pub method: String,
+    #[serde(default = "default_preset")]
+    pub preset: String,
+    pub seeds: Vec<u64>,
+    /// The sweep's folder: one `task_K` folder per array task.
+    pub out: PathBuf,
+    /// AD's learning histories.
+    pub dataset: Option<PathBuf>,
+    /// Overrides for every run (`--set`).
+    #[serde(default)]
+    pub set: toml::Table,
+    /// Setting -> values; runs cover every combination.
+    #[serde(default)]
+    pub grid: toml::Table,
+    #[serde(default)]
+    pub slurm: SlurmOptions,
+}
+
+fn default_method() -> String {
+    "eppo".into()
+}
+
+fn default_preset() -> String {
+    "quick".into()
+}
+
+/// One array task: a seed and one value of every grid setting.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Task {
+    pub index: usize,
+    pub seed: u64,
+    /// `key=value` of every grid setting (TOML values).
+    pub settings: Vec<String>,
+}
+
+impl Task {
+    /// The setting's name in tables: its grid values, or `preset`.
+    pub fn label(&self) -> String {
+        if self.settings.is_empty() {
+            "preset".into()
+        } else {
+            self.settings.join(" ")
+        }
+    }
+}
+
+impl SweepGrid {
+    /// Reads a grid file; relative `out` and `dataset` are taken from the
+    /// file's folder and made absolute (array tasks start anywhere).
+    pub fn load(path: &Path) -> Result<Self, SweepError> {
+        let problem = |problem: String| SweepError::Grid {
+            path: path.to_path_buf(),
+            problem,
+        };
+        let text = std::fs::read_to_string(path).map_err(|e| problem(e.to_string()))?;
+        let mut grid: SweepGrid = toml::from_str(&text).map_err(|e| problem(e.to_string()))?;
+        grid.env
+            .parse::<EnvName>()
+            .map_err(|e| problem(e.to_string()))?;
+        if !["eppo", "ad"].contains(&grid.method.as_str()) {
+            return Err(problem(format!("method {:?}: eppo or ad", grid.method)));
+        }
+        if grid.method == "ad" && grid.dataset.is_none() {
+            return Err(problem("method \"ad\" needs dataset = \"FILE\"".into()));
+        }
+        if grid.seeds.is_empty() {
+            return Err(problem("seeds is empty: give at least one".into()));
+        }
+        for (key, values) in &grid.grid {
+            if values.as_array().is_none_or(|a| a.is_empty()) {
+                return Err(problem(format!(
+                    "grid.{key} must be a non-empty list of values"
+                )));
+            }
+        }
+        let base = path
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        let base = std::path::absolute(base).map_err(|e| problem(e.to_string()))?;
+        grid.out = base.join(&grid.out);
+        grid.dataset = grid.dataset.map(|d| base.join(d));
+        grid.tasks_checked().map_err(problem)?;
+        Ok(grid)
+    }
+
+    /// Every (setting, seed), settings outermost, in a fixed order.
+    pub fn tasks(&self) -> Vec<Task> {
+        let mut combos: Vec<Vec<String>> = vec![Vec::new()];
+        for (key, values) in &self.grid {
+            let values = values.as_array().map_or(&[][..], Vec::as_slice);
+            combos = combos
+                .iter()
+                .flat_map(|c| {
+                    values.iter().map(move |v| {
+                        let mut c = c.clone();
+                        c.push(format!("{key}={v}"));
+                        c
+                    })
+                })
+                .collect();
+        }
+        combos
+            .into_iter()
+            .flat_map(|settings| self.seeds.iter().map(move |&seed| (seed, settings.clone())))
+            .enumerate()
+            .map(|(index, (seed, settings))| Task {
+                index,
+                seed,
+                settings,
+            })
+            .collect()
+    }
+
+    /// The tasks, each resolved against the preset once, so that a bad key
+    /// or value fails now and not on the cluster.
+    fn tasks_checked(&self) -> Result<Vec<(Task, toml::Table)>, String> {
+        self.tasks()
+            .into_iter()
+            .map(|t| {
+                let table = self.resolved(&t)?;
+                Ok((t, table))
+            })
+            .collect()
+    }
+
+    /// The preset with `[set]` and the task's settings applied, checked as
+    /// the learner checks its config.
+    fn resolved(&self, task: &Task) -> Result<toml::Table, String> {
+        let mut table = crate::presets::preset_table(&self.method, &self.env, &self.preset)
+            .map_err(|e| e.to_string())?;
+        crate::presets::apply_overrides(&mut table, &self.sets(task)).map_err(|e| e.to_string())?;
+        let checked = match self.method.as_str() {
+            "ad" => crate::ad::AdConfig::from_table(table.clone())
+                .map(|_| ())
+                .map_err(|e| e.to_string()),
+            _ => crate::presets::resolve::<crate::eppo::EppoConfig>("sweep", table.clone())
+                .map_err(|e| e.to_string())
+                .and_then(|c| c.validate().map_err(|e| e.to_string())),
+        };
+        checked.map_err(|e| format!("task {} ({}): {e}", task.index, task.label()))?;
+        Ok(table)
+    }
+
+    /// `--set`s of a task: `[set]`, its grid values, its seed.
+    fn sets(&self, task: &Task) -> Vec<String> {
+        let mut sets = Vec::new();
+        flatten_sets("", &self.set, &mut sets);
+        sets.extend(task.settings.iter().cloned());
+        sets.push(format!("seed={}", task.seed));
+        sets
+    }
+
+    /// The folder of task `index` (it holds one run folder).
+    pub fn task_dir(&self, index: usize) -> PathBuf {
+        self.out.join(format!("task_{index:03}"))
+    }
+
+    /// The `icrl` arguments of a task: a plain `pretrain` into its own folder.
+    pub fn pretrain_args(&self, task: &Task) -> Vec<String> {
+        let mut args: Vec<String> = [
+            "pretrain",
+            "--env",
+            &self.env,
+            "--method",
+            &self.method,
+            "--preset",
+            &self.preset,
+        ]
+        .map(String::from)
+        .to_vec();
+        if let Some(d) = &self.dataset {
+            args.extend(["--dataset".into(), d.display().to_string()]);
+        }
+        for s in self.sets(task) {
+            args.extend(["--set".into(), s]);
+        }
+        args.extend([
+            "--out".into(),
+            self.task_dir(task.index).display().to_string(),
+            "--resume-in-out".into(),
+        ]);
+        args
+    }
+}
+
+/// `[set]` as `key=value` strings, nested tables as dotted keys.
+fn flatten_sets(prefix: &str, table: &toml::Table, out: &mut Vec<String>) {
+    for (k, v) in table {
+        let key = if prefix.is_empty() {
+            k.clone()
+        } else {
+            format!("{prefix}.{k}")
+        };
+        match v {
+            toml::Value::Table(t) => flatten_sets(&key, t, out),
+            other => out.push(format!("{key}={other}")),
+        }
+    }
+}
+
+/// Updates per second of the quick presets, measured on one CPU core shared
+/// with other jobs (README): the default speed for the time limit.
+fn measured_updates_per_second(method: &str, env: &str, preset: &str) -> Option<f64> {
+    match (method, env, preset) {
+        // 7000 updates in about 90 minutes.
+        ("eppo", "darkroom", "quick") => Some(1.3),
+        ("eppo", "point", "quick") => Some(1.5),
+        ("eppo", "car", "quick") => Some(0.5),
+        _ => None,
+    }
+}
+
+/// The `#SBATCH` resources of the array: threads and device from the
+/// preset, memory from the learner's estimate, time from the updates and the
+/// measured speed (1.5x, plus 10 minutes for start-up and the final check).
+struct Resources {
+    cpus: usize,
+    mem_gib: u64,
+    gpus: usize,
+    time: String,
+}
+
+fn resources(grid: &SweepGrid) -> Result<Resources, String> {
+    let s = &grid.slurm;
+    let tables: Vec<toml::Table> = grid.tasks_checked()?.into_iter().map(|(_, t)| t).collect();
+    let int = |t: &toml::Table, k: &str| t.get(k).and_then(toml::Value::as_integer).unwrap_or(0);
+    let updates_key = if grid.method == "ad" {
+        "updates"
+    } else {
+        "total_updates"
+    };
+    let updates = tables
+        .iter()
+        .map(|t| int(t, updates_key))
+        .max()
+        .unwrap_or(0);
+    // torch_threads = 0 means one per core: ask for 8.
+    let threads = tables
+        .iter()
+        .map(|t| match int(t, "torch_threads") {
+            0 => 8,
+            n => n.max(int(t, "env_threads")),
+        })
+        .max()
+        .unwrap_or(1);
+    let cuda = tables
+        .iter()
+        .any(|t| t.get("device").and_then(toml::Value::as_str) == Some("cuda"));
+    let mem_gib = match grid.method.as_str() {
+        "eppo" => eppo_memory_gib(grid, &tables)?,
+        _ => 8,
+    };
+    let time = match (&s.time, s.updates_per_second) {
+        (Some(t), _) => t.clone(),
+        (None, rate) => {
+            let rate = rate
+                .or_else(|| measured_updates_per_second(&grid.method, &grid.env, &grid.preset))
+                .ok_or_else(|| {
+                    format!(
+                        "no measured speed for {} {} {}: set [slurm] time = \"HH:MM:SS\" or \
+                         [slurm] updates_per_second from a short run on the cluster",
+                        grid.method, grid.env, grid.preset
+                    )
+                })?;
+            let seconds = (1.5 * updates as f64 / rate) as u64 + 600;
+            format!(
+                "{:02}:{:02}:{:02}",
+                seconds / 3600,
+                seconds % 3600 / 60,
+                seconds % 60
+            )
+        }
+    };
+    Ok(Resources {
+        cpus: s.cpus_per_task.unwrap_or(threads as usize),
+        mem_gib,
+        gpus: s.gpus.unwrap_or(usize::from(cuda)),
+        time,
+    })
+}
+
+/// EPPO's memory estimate of the largest task, doubled, in whole GiB.
+fn eppo_memory_gib(grid: &SweepGrid, tables: &[toml::Table]) -> Result<u64, String> {
+    let env: EnvName = grid.env.parse().map_err(|e| format!("{e}"))?;
+    let probe = safety_envs::make_env(env, &safety_envs::EnvOptions::default())
+        .map_err(|e| e.to_string())?;
+    let spec = crate::eppo::NetSpec::from_spaces(&probe.observation_space(), &probe.action_space())
+        .map_err(|e| e.to_string())?;
+    let mut most: f64 = 0.0;
+    for t in tables {
+        let cfg: crate::eppo::EppoConfig =
+            crate::presets::resolve("sweep", t.clone()).map_err(|e| e.to_string())?;
+        most = most.max(crate::eppo::memory_estimate(&cfg, &spec).total());
+    }
+    Ok(((2.0 * most) / (1u64 << 30) as f64).ceil().max(2.0) as u64)
+}
+
+/// The sbatch script of the whole sweep.
+pub fn slurm_script(grid: &SweepGrid, icrl: &Path) -> Result<String, SweepError> {
+    let grid_err = |problem: String| SweepError::Grid {
+        path: grid.out.clone(),
+        problem,
+    };
+    let r = resources(grid).map_err(grid_err)?;
+    let tasks = grid.tasks();
+    let mut s = String::new();
+    let mut line = |l: String| {
+        s.push_str(&l);
+        s.push('\n');
+    };
+    line("#!/bin/bash".into());
+    line(format!(
+        "# {} x {} seeds of icrl pretrain --env {} --method {} --preset {}; written by icrl sweep --emit slurm.",
+        tasks.len() / grid.seeds.len(),
+        grid.seeds.len(),
+        grid.env,
+        grid.method,
+        grid.preset
+    ));
+    line(format!(
+        "#SBATCH --job-name=icrl-{}-{}",
+        grid.env, grid.method
+    ));
+    line(format!("#SBATCH --array=0-{}", tasks.len() - 1));
+    line(format!("#SBATCH --cpus-per-task={}", r.cpus));
+    line(format!("#SBATCH --mem={}G", r.mem_gib));
+    line(format!("#SBATCH --time={}", r.time));
+    if r.gpus > 0 {
+        line(format!("#SBATCH --gres=gpu:{}", r.gpus));
+    }
+    if let Some(p) = &grid.slurm.partition {
+        line(format!("#SBATCH --partition={p}"));
+    }
+    if let Some(a) = &grid.slurm.account {
+        line(format!("#SBATCH --account={a}"));
+    }
+    // Preempted or stopped ahead of the time limit: back in the queue, and
+    // the run resumes from its checkpoint (--resume-in-out).
+    line("#SBATCH --requeue".into());
+    // USR1 to this script 5 minutes before the limit (TERM is preemption's).
+    line("#SBATCH --signal=B:USR1@300".into());
+    line(format!(
+        "#SBATCH --output={}",
+        grid.out.join("logs").join("%A_%a.out").display()
+    ));
+    // A requeued task adds to its log rather than replacing it.
+    line("#SBATCH --open-mode=append".into());
+    for e in &grid.slurm.extra {
+        line(format!("#SBATCH {e}"));
+    }
+    line("set -u".into());
+    line("case \"$SLURM_ARRAY_TASK_ID\" in".into());
+    for t in &tasks {
+        let args: Vec<String> = grid
+            .pretrain_args(t)
+            .iter()
+            .map(|a| shell_word(Path::new(a)))
+            .collect();
+        line(format!("  {}) args=({}) ;;", t.index, args.join(" ")));
+    }
+    line("  *) echo \"no task $SLURM_ARRAY_TASK_ID\" >&2; exit 2 ;;".into());
+    line("esac".into());
+    line(format!(
+        "\
+# icrl checkpoints on SIGTERM and exits 130. Near the time limit (USR1, to
+# this script only) the script sends it TERM, then requeues the task. On
+# preemption or `scontrol requeue`, Slurm sends TERM to icrl itself (and
+# requeues): the script only outlives it (a second TERM would stop icrl
+# without its checkpoint).
+requeue=0
+trap 'requeue=1; kill -TERM \"$pid\" 2>/dev/null' USR1
+trap ':' TERM
+{} \"${{args[@]}}\" &
+pid=$!
+# A trapped signal ends `wait` early: wait again while icrl runs.
+while :; do
+  wait \"$pid\"; status=$?
+  kill -0 \"$pid\" 2>/dev/null || break
+done
+if [ \"$requeue\" = 1 ] && [ \"$status\" = 130 ]; then
+  scontrol requeue \"${{SLURM_ARRAY_JOB_ID}}_${{SLURM_ARRAY_TASK_ID}}\"
+fi
+exit \"$status\"",
+        shell_word(icrl)
+    ));
+    Ok(s)
+}
+
+/// Writes `OUT/sweep.sbatch` (and `OUT/logs/`), returns its path.
+pub fn emit_slurm(grid: &SweepGrid, icrl: &Path, force: bool) -> Result<PathBuf, SweepError> {
+    let script = slurm_script(grid, icrl)?;
+    let io = |e: std::io::Error| SweepError::Io(format!("{}: {e}", grid.out.display()));
+    std::fs::create_dir_all(grid.out.join("logs")).map_err(io)?;
+    let path = grid.out.join("sweep.sbatch");
+    let existing = safety_envs::output::Existing::from_force(force);
+    safety_envs::output::write_bytes(&path, existing, script.as_bytes())?;
+    Ok(path)
+}
+
+/// How the evaluation of `--gather` runs.
+#[derive(Clone, Debug)]
+pub struct GatherOptions {
+    pub tasks: usize,
+    pub episodes: Option<usize>,
+    pub n_budgets: usize,
+    pub threads: usize,
+    pub force: bool,
+}
+
+/// What `--gather` found and wrote.
+#[derive(Clone, Debug)]
+pub struct Gathered {
+    /// Tasks whose run has not finished (or not started): index and why.
+    pub unfinished: Vec<(usize, String)>,
+    pub evaluated: usize,
+    pub table: String,
+    pub files: Vec<PathBuf>,
+}
+
+/// Evaluates the last checkpoint of every finished run (held-out tasks, as
+/// `icrl eval`, one folder per task under `OUT/gather/`), then writes the
+/// table of settings: mean and standard error over seeds of each run's
+/// first- and last-window return and cost.
+pub fn gather(grid: &SweepGrid, opts: &GatherOptions) -> Result<Gathered, SweepError> {
+    let env: EnvName = grid
+        .env
+        .parse()
+        .map_err(|e| SweepError::Io(format!("{e}")))?;
+    let mut unfinished = Vec::new();
+    // label -> per seed (first return, last return, first cost, last cost)
+    let mut rows: BTreeMap<String, Vec<[f64; 4]>> = BTreeMap::new();
+    let mut files = Vec::new();
+    for task in grid.tasks() {
+        let dir = grid.task_dir(task.index);
+        let run = match run_in_out(&dir, &grid.env, &grid.method, &grid.sets(&task))? {
+            InOut::Finished { run, .. } => run,
+            InOut::Resume(run) => {
+                unfinished.push((task.index, format!("{} has not finished", run.display())));
+                continue;
+            }
+            InOut::Start => {
+                unfinished.push((
+                    task.index,
+                    format!("no run with a checkpoint in {}", dir.display()),
+                ));
+                continue;
+            }
+        };
+        let mut agent = crate::eval::load::load_checkpoint(&run, env)?;
+        agent.label = Some(format!("task_{:03}", task.index));
+        let eval = crate::eval::command::EvalOptions {
+            env,
+            tasks: opts.tasks,
+            episodes: opts.episodes,
+            budgets: None,
+            n_budgets: opts.n_budgets,
+            rtg: 1.0,
+            sweep: false,
+            random: false,
+            render: false,
+            out: grid
+                .out
+                .join("gather")
+                .join(format!("task_{:03}", task.index)),
+            eval_seed: 0,
+            batch: 256,
+            threads: opts.threads,
+            greedy: false,
+            max_episode_steps: None,
+            progress: false,
+            in_distribution: false,
+            seed_torch: true,
+            command: format!("icrl sweep --gather (task {})", task.index),
+            force: opts.force,
+        };
+        let out = crate::eval::command::run(vec![agent], &eval)?;
+        let report = out
+            .files
+            .iter()
+            .find(|f| f.extension().is_some_and(|e| e == "json"))
+            .ok_or_else(|| {
+                SweepError::Io(format!("task {}: eval wrote no JSON report", task.index))
+            })?;
+        let json: serde_json::Value = std::fs::read_to_string(report)
+            .ok()
+            .and_then(|t| serde_json::from_str(&t).ok())
+            .ok_or_else(|| SweepError::Io(format!("{}: unreadable report", report.display())))?;
+        let trend = &json["summary"]["trend"];
+        let num = |k: &str| trend[k]["mean"].as_f64().unwrap_or(f64::NAN);
+        rows.entry(task.label()).or_default().push([
+            num("first_return"),
+            num("last_return"),
+            num("first_cost"),
+            num("last_cost"),
+        ]);
+        files.extend(out.files);
+    }
+    let evaluated = rows.values().map(Vec::len).sum();
+    let (table, csv) = table(grid, &rows);
+    let dir = grid.out.join("gather");
+    std::fs::create_dir_all(&dir).map_err(|e| SweepError::Io(format!("{}: {e}", dir.display())))?;
+    let existing = safety_envs::output::Existing::from_force(opts.force);
+    for (name, text) in [("table.md", &table), ("table.csv", &csv)] {
+        let path = dir.join(name);
+        safety_envs::output::write_bytes(&path, existing, text.as_bytes())?;
+        files.push(path);
+    }
+    Ok(Gathered {
+        unfinished,
+        evaluated,
+        table,
+        files,
+    })
+}
+
+/// The ablation table, as Markdown and CSV.
+fn table(grid: &SweepGrid, rows: &BTreeMap<String, Vec<[f64; 4]>>) -> (String, String) {
+    let mut md = format!(
+        "{} {} ({} preset), held-out evaluation of each run's last checkpoint; mean ± s.e. over seeds\n\n\
+         | setting | seeds | return, first episodes | return, last episodes | cost, first episodes | cost, last episodes |\n\
+         |---|---|---|---|---|---|\n",
+        grid.env, grid.method, grid.preset
+    );
+    let mut csv = String::from(
+        "setting,seeds,first_return,first_return_se,last_return,last_return_se,first_cost,first_cost_se,last_cost,last_cost_se\n",
+    );
+    for (label, seeds) in rows {
+        let cols: Vec<crate::stats::MeanSe> = (0..4)
+            .map(|i| {
+                let xs: Vec<f64> = seeds.iter().map(|s| s[i]).collect();
+                crate::stats::mean_se(&xs).unwrap_or_else(crate::stats::MeanSe::undefined)
+            })
+            .collect();
+        let _ = write!(md, "| {label} | {} |", seeds.len());
+        let _ = write!(csv, "\"{label}\",{}", seeds.len());
+        for c in &cols {
+            let _ = write!(md, " {:.3} ± {:.3} |", c.mean, c.se);
+            let _ = write!(csv, ",{},{}", c.mean, c.se);
+        }
+        md.push('\n');
+        csv.push('\n');
+    }
+    (md, csv)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn grid_file(dir: &Path, text: &str) -> PathBuf {
+        std::fs::create_dir_all(dir).unwrap();
+        let path = dir.join("sweep.toml");
+        std::fs::write(&path, text).unwrap();
+        path
+    }
+
+    #[test]
+    fn the_array_has_one_task_per_seed_and_setting() {
+        let dir = std::env::temp_dir().join(format!("icrl-sweep-grid-{}", std::process::id()));
+        let path = grid_file(
+            &dir,
+            r#"
+env = "darkroom"
+seeds = [0, 1]
+out = "sweep"
+[set]
+total_updates = 600
+[grid]
+lr = [1e-4, 3e-4]
+k_max = [16]
+[slurm]
+partition = "cpu"
+account = "proj"
+"#,
+        );
+        let grid = SweepGrid::load(&path).unwrap();
+        let tasks = grid.tasks();
+        assert_eq!(tasks.len(), 4);
+        assert_eq!(tasks[1].seed, 1);
+        assert_eq!(tasks[1].label(), "k_max=16 lr=0.0001");
+        assert_eq!(tasks[2].label(), "k_max=16 lr=0.0003");
+        let args = grid.pretrain_args(&tasks[3]).join(" ");
+        assert!(
+            args.contains("--set total_updates=600 --set k_max=16 --set lr=0.0003 --set seed=1")
+                && args.ends_with(&format!(
+                    "--out {} --resume-in-out",
+                    dir.join("sweep/task_003").display()
+                )),
+            "{args}"
+        );
+        let script = slurm_script(&grid, Path::new("/opt/icrl")).unwrap();
+        for want in [
+            "#SBATCH --array=0-3",
+            "#SBATCH --cpus-per-task=1",
+            "#SBATCH --partition=cpu",
+            "#SBATCH --account=proj",
+            "#SBATCH --requeue",
+            "#SBATCH --signal=B:USR1@300",
+            // 600 updates at 1.3/s, x1.5, + 10 minutes.
+            "#SBATCH --time=00:21:32",
+            "/opt/icrl \"${args[@]}\" &",
+        ] {
+            assert!(script.contains(want), "{want} missing from\n{script}");
+        }
+        // A bad setting fails when the grid is read, not on the cluster.
+        let path = grid_file(
+            &dir,
+            "env = \"darkroom\"\nseeds = [0]\nout = \"s\"\n[grid]\nno_such_key = [1]\n",
+        );
+        let e = SweepGrid::load(&path).unwrap_err().to_string();
+        assert!(e.contains("no_such_key"), "{e}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    #[test]
+    fn a_requeued_task_resumes_its_own_run() {
+        let dir = std::env::temp_dir().join(format!("icrl-sweep-requeue-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        let out = dir.join("task_000");
+        let sets: Vec<String> = ["total_updates=2", "checkpoint_every=1", "seed=3"]
+            .map(String::from)
+            .to_vec();
+        assert_eq!(
+            run_in_out(&out, "darkroom", "eppo", &sets).unwrap(),
+            InOut::Start
+        );
+        let first = crate::cli::pretrain::eppo("darkroom", "quick", None, &sets, &out).unwrap();
+        assert_eq!(
+            run_in_out(&out, "darkroom", "eppo", &sets).unwrap(),
+            InOut::Finished {
+                run: first.run_dir.clone(),
+                updates: 2
+            }
+        );
+        // Requeued with a longer run asked for: the same folder continues.
+        let longer: Vec<String> = ["total_updates=3", "checkpoint_every=1", "seed=3"]
+            .map(String::from)
+            .to_vec();
+        let InOut::Resume(run) = run_in_out(&out, "darkroom", "eppo", &longer).unwrap() else {
+            panic!("expected to resume");
+        };
+        assert_eq!(run, first.run_dir);
+        let again =
+            crate::cli::pretrain::eppo("darkroom", "quick", Some(&run), &longer, &out).unwrap();
+        assert_eq!((again.run_dir, again.updates), (first.run_dir, 3));
+        assert_eq!(
+            std::fs::read_dir(&out).unwrap().count(),
+            1,
+            "one run folder"
+        );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+}
