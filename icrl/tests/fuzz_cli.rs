@@ -1,6 +1,7 @@
 //! Fuzz harness for the command line: random argument vectors (numbers at
 //! and past every edge, paths to nothing, files, folders and devices, flags
-//! repeated, missing or unknown) for every `icrl` subcommand, run as a child
+//! repeated, missing or unknown) for every `icrl` subcommand (`dataset
+//! merge` and `sweep` included), run as a child
 //! process. Every case must end as a program that knows what happened:
 //! - no panic (exit 101), abort (134) or signal, no `panicked at`, Rust
 //!   backtrace or C++ `terminate called` at the user;
@@ -106,6 +107,21 @@ fn flags(sub: &str) -> Vec<(&'static str, Value)> {
             ("--source", Word(&["ppo-lagrangian", "ad-eps", "x"])),
             ("--physics-steps-per-action", Number),
             ("--keep-episodes", Number),
+            (
+                "--shard",
+                Word(&["0/2", "1/2", "2/2", "0/0", "-1/3", "a/b", "1"]),
+            ),
+            ("--force", None),
+        ],
+        "dataset merge" => vec![("--out", Path), ("--force", None), ("SHARD", Path)],
+        "sweep" => vec![
+            ("--grid", Path),
+            ("--emit", Word(&["slurm", "pbs", ""])),
+            ("--gather", None),
+            ("--tasks", Number),
+            ("--episodes", Number),
+            ("--n-budgets", Number),
+            ("--threads", Number),
             ("--force", None),
         ],
         "eval" => vec![
@@ -150,6 +166,7 @@ fn path(rng: &mut ChaCha8Rng, dir: &Path) -> String {
         dir.join("run"),
         dir.join("out.h5"),
         dir.join("with space"),
+        dir.join("grid.toml"),
         PathBuf::from("/dev/null"),
         PathBuf::from("/dev/full"),
         PathBuf::from(""),
@@ -175,7 +192,7 @@ fn value(rng: &mut ChaCha8Rng, kind: Value, dir: &Path) -> Option<String> {
 /// repeated, sometimes without their value), now and then an unknown flag.
 fn command_line(rng: &mut ChaCha8Rng, sub: &str, dir: &Path) -> Vec<String> {
     let all = flags(sub);
-    let mut args = vec![sub.to_string()];
+    let mut args: Vec<String> = sub.split(' ').map(String::from).collect();
     for _ in 0..rng.gen_range(0..=6) {
         let (flag, kind) = all[rng.gen_range(0..all.len())];
         if !flag.starts_with("--") {
@@ -198,6 +215,12 @@ fn prepare(dir: &Path) {
     let _ = std::fs::remove_dir_all(dir);
     std::fs::create_dir_all(dir.join("a_folder")).unwrap();
     std::fs::write(dir.join("a_file.txt"), "not a checkpoint\n").unwrap();
+    // A sound sweep grid of tiny runs, for `sweep --grid`.
+    std::fs::write(
+        dir.join("grid.toml"),
+        "env = \"darkroom\"\nseeds = [0, 1]\nout = \"runs\"\n[set]\ntotal_updates = 2\n[grid]\nlr = [0.0003]\n",
+    )
+    .unwrap();
 }
 
 /// Runs one case; returns its verdict's failures (empty when it behaved).
@@ -267,6 +290,8 @@ fn random_command_lines_never_crash_or_exit_0_on_a_failure() {
         "eval",
         "plot-training",
         "plot-histories",
+        "dataset merge",
+        "sweep",
     ];
     let mut bad = Vec::new();
     for case in 0..cases {
