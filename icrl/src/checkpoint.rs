@@ -574,6 +574,22 @@ impl RunDir {
         Ok(best.map(|(_, p)| p))
     }
 
+    /// Makes and removes the deepest path a checkpoint at update `last` will
+    /// write, so that a path the file system refuses (too long, a read-only
+    /// or full folder) fails before training, not after it.
+    pub fn probe_checkpoint_path(&self, last: u64) -> Result<(), CheckpointError> {
+        let tmp = self
+            .path
+            .join("checkpoints")
+            .join(format!(".tmp_step_{last}"));
+        let file = tmp.join("optimizer.safetensors");
+        let probe = fs::create_dir_all(&tmp)
+            .map_err(io(&tmp))
+            .and_then(|()| fs::write(&file, [0u8; 4096]).map_err(io(&file)));
+        let _ = fs::remove_dir_all(&tmp);
+        probe
+    }
+
     /// Writes `checkpoints/step_{updates}` atomically: `write` fills a
     /// temporary folder, the manifest (with every file's size) is added, and
     /// the folder is renamed into place. Keeps the newest `keep` checkpoints.
@@ -823,6 +839,31 @@ impl MetricsWriter {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_checkpoint_path_the_file_system_refuses_fails_before_training() {
+        let base = std::env::temp_dir().join(format!("icrl-ckpt-probe-{}", std::process::id()));
+        let run = RunDir::create_named(&base, "run").unwrap();
+        run.probe_checkpoint_path(7000).unwrap();
+        assert!(
+            !run.path.join("checkpoints/.tmp_step_7000").exists(),
+            "the probe leaves nothing behind"
+        );
+        // A run folder whose checkpoints would pass the 4,095-byte path limit:
+        // refused at the probe, naming the path, not after training.
+        let mut root = base.join("deep");
+        while root.as_os_str().len() < 4064 {
+            let room = 4064 - root.as_os_str().len() - 1;
+            root.push("x".repeat(room.clamp(1, 200)));
+        }
+        let deep = RunDir::create_named(&root, "run").unwrap();
+        let e = deep.probe_checkpoint_path(7000).unwrap_err().to_string();
+        assert!(
+            e.contains("optimizer.safetensors") && e.contains("too long"),
+            "{e}"
+        );
+        fs::remove_dir_all(base).unwrap();
+    }
 
     #[test]
     fn atomic_checkpoint_and_truncation_detected() {

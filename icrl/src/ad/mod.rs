@@ -370,6 +370,7 @@ fn resume_or_start(
     }
     // The resolved config (a grown `updates` included).
     write_atomic(&config_path, config_toml.as_bytes())?;
+    RunDir::open(dir)?.probe_checkpoint_path(cfg.updates as u64)?;
     Ok((state, last_ckpt))
 }
 

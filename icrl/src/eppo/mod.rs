@@ -313,6 +313,7 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
     };
     let cfg = learner.cfg.clone();
     run.write_config(&toml::to_string(&cfg).map_err(|e| EppoError::Config(e.to_string()))?)?;
+    run.probe_checkpoint_path(cfg.total_updates)?;
     let mut metrics = MetricsWriter::open(&run.metrics_path())?;
     let env_options = EnvOptions {
         max_episode_steps: Some(cfg.max_episode_steps),
