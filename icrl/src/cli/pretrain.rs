@@ -213,7 +213,7 @@ fn check_eppo_resume(path: &Path, saved: &toml::Table, now: &toml::Table) -> Res
 }
 
 /// `(dotted.key, value)` for every leaf of a TOML table.
-fn flatten(prefix: &str, table: &toml::Table, out: &mut Vec<(String, String)>) {
+pub(crate) fn flatten(prefix: &str, table: &toml::Table, out: &mut Vec<(String, String)>) {
     for (k, v) in table {
         let key = if prefix.is_empty() {
             k.clone()

@@ -227,8 +227,9 @@ impl SweepGrid {
 
     /// `--set`s of a task: `[set]`, its grid values, its seed.
     fn sets(&self, task: &Task) -> Vec<String> {
-        let mut sets = Vec::new();
-        flatten_sets("", &self.set, &mut sets);
+        let mut leaves = Vec::new();
+        super::pretrain::flatten("", &self.set, &mut leaves);
+        let mut sets: Vec<String> = leaves.iter().map(|(k, v)| format!("{k}={v}")).collect();
         sets.extend(task.settings.iter().cloned());
         sets.push(format!("seed={}", task.seed));
         sets
@@ -264,21 +265,6 @@ impl SweepGrid {
             "--resume-in-out".into(),
         ]);
         args
-    }
-}
-
-/// `[set]` as `key=value` strings, nested tables as dotted keys.
-fn flatten_sets(prefix: &str, table: &toml::Table, out: &mut Vec<String>) {
-    for (k, v) in table {
-        let key = if prefix.is_empty() {
-            k.clone()
-        } else {
-            format!("{prefix}.{k}")
-        };
-        match v {
-            toml::Value::Table(t) => flatten_sets(&key, t, out),
-            other => out.push(format!("{key}={other}")),
-        }
     }
 }
 

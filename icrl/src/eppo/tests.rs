@@ -617,13 +617,15 @@ fn lambda_rises_falls_and_respects_the_cap() {
     assert_eq!(t.max_violation(), 3.0);
 }
 
-#[test]
-fn violation_flag_gates_the_cost_penalty() {
+/// A batch collected by a tiny SafeDarkRoom learner whose actor pays the
+/// cost penalty in `form`.
+fn penalty_probe(form: PenaltyForm) -> (Learner, Batch) {
     let (mut learner, mut venv) = tiny_learner(2);
+    learner.cfg.penalty = form;
     learner.collect(&mut venv).unwrap();
     let trajs: Vec<&Trajectory> = learner.replay.trajectories.iter().collect();
     let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let mut batch = make_batch(
+    let batch = make_batch(
         &trajs,
         &learner.cfg,
         &learner.spec,
@@ -631,12 +633,21 @@ fn violation_flag_gates_the_cost_penalty() {
         &mut rng,
         Device::Cpu,
     );
-    let policy_loss = |batch: &Batch, lambda: f64| {
-        tch::manual_seed(0);
-        let (_, _, lp, ..) =
-            losses(&learner.net, &learner.target, batch, lambda, &learner.cfg).unwrap();
-        lp.double_value(&[])
-    };
+    (learner, batch)
+}
+
+/// Lp on `batch` with multiplier `lambda`, the same libtorch draws each call.
+fn policy_loss_at(learner: &Learner, batch: &Batch, lambda: f64) -> f64 {
+    tch::manual_seed(0);
+    let (_, _, lp, ..) =
+        losses(&learner.net, &learner.target, batch, lambda, &learner.cfg).unwrap();
+    lp.double_value(&[])
+}
+
+#[test]
+fn violation_flag_gates_the_cost_penalty() {
+    let (learner, mut batch) = penalty_probe(PenaltyForm::Hindsight);
+    let policy_loss = |batch: &Batch, lambda: f64| policy_loss_at(&learner, batch, lambda);
     batch.violated = batch.valid.zeros_like();
     let (clean_0, clean_5) = (policy_loss(&batch, 0.0), policy_loss(&batch, 5.0));
     assert!(
@@ -675,25 +686,8 @@ fn the_hinge_charges_predicted_cost_past_the_remaining_budget_only() {
     );
     // Through the whole actor loss: with the hinge, lambda bites only when
     // the cost critic predicts more than the remaining budget.
-    let (mut learner, mut venv) = tiny_learner(2);
-    learner.cfg.penalty = PenaltyForm::Hinge;
-    learner.collect(&mut venv).unwrap();
-    let trajs: Vec<&Trajectory> = learner.replay.trajectories.iter().collect();
-    let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let mut batch = make_batch(
-        &trajs,
-        &learner.cfg,
-        &learner.spec,
-        0.0,
-        &mut rng,
-        Device::Cpu,
-    );
-    let policy_loss = |batch: &Batch, lambda: f64| {
-        tch::manual_seed(0);
-        let (_, _, lp, ..) =
-            losses(&learner.net, &learner.target, batch, lambda, &learner.cfg).unwrap();
-        lp.double_value(&[])
-    };
+    let (learner, mut batch) = penalty_probe(PenaltyForm::Hinge);
+    let policy_loss = |batch: &Batch, lambda: f64| policy_loss_at(&learner, batch, lambda);
     batch.ctg = batch.valid.ones_like() * 1e6;
     let (rich_0, rich_5) = (policy_loss(&batch, 0.0), policy_loss(&batch, 5.0));
     assert!((rich_0 - rich_5).abs() < 1e-4, "ample budget: no penalty");
