@@ -177,6 +177,23 @@ pub struct EppoConfig {
     /// everything at evaluation, stay sparse. 0: off (the paper).
     #[serde(default)]
     pub dense_reward_coef: f64,
+
+    // The loop's shape (issue 20): both together, so merges stay simple.
+    /// Collect and learn at once on two threads (`overlap.rs`): an actor
+    /// steps the environments with a copy of the policy, refreshed after
+    /// every round's updates, one round behind the synchronous loop's; the
+    /// learner updates meanwhile. The replay ratio holds whatever either
+    /// side's speed, and a run stays deterministic under its seed. Wants
+    /// `torch_threads = 1` on two cores. false: collect, then update.
+    #[serde(default)]
+    pub overlap: bool,
+    /// The replay ratio as updates per environment step: after each round
+    /// the learner catches up to floor(replay_ratio x (env_steps -
+    /// learning_starts)) updates in total. Absent: `updates_per_round`
+    /// updates after each round (updates per collected trajectory =
+    /// updates_per_round / n_envs), as in the paper's loop.
+    #[serde(default)]
+    pub replay_ratio: Option<f64>,
 }
 
 /// Absent from a config: the PID Lagrangian's usual smoothing.
@@ -291,6 +308,13 @@ impl EppoConfig {
             ),
         ])
         .or_else(bad)?;
+        if let Some(r) = self.replay_ratio
+            && !(r.is_finite() && r > 0.0)
+        {
+            return bad(format!(
+                "replay_ratio = {r} must be a positive number (updates per environment step)"
+            ));
+        }
         if self.k_min == 0 || self.k_min > self.k_max {
             return bad(format!(
                 "need 1 <= k_min <= k_max, got k_min = {}, k_max = {}",
