@@ -149,6 +149,8 @@ fn synthetic(k: usize, rng: &mut rand_chacha::ChaCha8Rng) -> Trajectory {
     for s in 0..n {
         t.obs
             .extend([rng.gen_range(0..9) as f32, rng.gen_range(0..9) as f32]);
+        t.next_obs
+            .extend([rng.gen_range(0..9) as f32, rng.gen_range(0..9) as f32]);
         let a = rng.gen_range(0..n_act);
         t.actions
             .extend((0..n_act).map(|j| if j == a { 1.0 } else { 0.0 }));

@@ -194,6 +194,13 @@ pub struct EppoConfig {
     /// updates_per_round / n_envs), as in the paper's loop.
     #[serde(default)]
     pub replay_ratio: Option<f64>,
+    /// Overlapped loop: libtorch intra-op threads of the learner's thread (0:
+    /// `torch_threads`); the actor keeps `torch_threads`. Where acting is a
+    /// tenth of the work (SafeDarkRoom) the actor mostly waits, and 2 lends
+    /// its core to the update (not yet measured on a free machine:
+    /// BENCHMARKS.md).
+    #[serde(default)]
+    pub learner_threads: i32,
 }
 
 /// Absent from a config: the PID Lagrangian's usual smoothing.
@@ -269,6 +276,12 @@ impl EppoConfig {
         ])
         .or_else(bad)?;
         crate::guard::check_torch_threads(self.torch_threads).or_else(bad)?;
+        if !(0..=1024).contains(&self.learner_threads) {
+            return bad(format!(
+                "learner_threads = {}: must be in [0, 1024] (0: torch_threads)",
+                self.learner_threads
+            ));
+        }
         check_numbers(&[
             ("ctg_min", f64::from(self.ctg_min), Range::NON_NEGATIVE),
             ("ctg_max", f64::from(self.ctg_max), Range::POSITIVE),

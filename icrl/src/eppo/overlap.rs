@@ -109,7 +109,11 @@ pub(super) fn train(
     }
     let quit = AtomicBool::new(false);
     let (env, spec) = (learner.env, learner.spec.clone());
-    std::thread::scope(|s| {
+    let (torch_threads, learner_threads) = (learner.cfg.torch_threads, learner.cfg.learner_threads);
+    if learner_threads > 0 {
+        tch::set_num_threads(learner_threads);
+    }
+    let result = std::thread::scope(|s| {
         let actor_thread = s.spawn(|| {
             if actor.cfg.torch_threads > 0 {
                 // libtorch's intra-op thread count is per OS thread.
@@ -124,7 +128,11 @@ pub(super) fn train(
             .join()
             .unwrap_or_else(|_| Err(EppoError::Config("the actor thread panicked".into())));
         learned.and(acted)
-    })
+    });
+    if learner_threads > 0 && torch_threads > 0 {
+        tch::set_num_threads(torch_threads);
+    }
+    result
 }
 
 /// The learner's side: take each round, run the updates it owes, publish

@@ -1062,6 +1062,14 @@ fn the_replay_ratio_sets_updates_per_environment_step() {
             .to_string()
             .contains("replay_ratio = 0")
     );
+    let mut bad = tiny();
+    bad.learner_threads = -1;
+    assert!(
+        bad.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("learner_threads = -1")
+    );
 }
 
 /// A stop while both sides run: the learner stops after its current update,
