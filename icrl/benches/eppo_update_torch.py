@@ -1,8 +1,17 @@
 """One EPPO update (discrete actions, SafeDarkRoom shapes) in PyTorch eager:
-the same model, losses and optimiser step as icrl/src/eppo/ (losses.rs, replay.rs), for the
-benchmark in icrl/benches/model.rs, which runs this script and compares.
+the same model, losses and optimiser step as icrl/src/eppo/ (losses.rs,
+replay.rs, mod.rs::Learner::update), for the benchmark in
+icrl/benches/model.rs, which runs this script with the shapes of the preset
+it measures and compares.
 
-Usage: python eppo_update_torch.py --batch 32 --seq 1500 --reps 3 --threads 2
+Mirrors the current update: tokens carry the arrived observation (token width
+2 * obs + actions + 4), n-step TD targets whose sums stop where the bootstrap
+masks stop, a cost target that never bootstraps past an episode's end, the
+penalty in reward units (lambda x reward_scale x Qc), critic_weight, global
+gradient-norm clipping, Adam, the Polyak update.
+
+Usage: python eppo_update_torch.py --batch 8 --seq 480 --layers 2 --d-ff 128 \
+    --reps 5 --threads 1
 Prints `torch_update_seconds <median wall>` and `torch_update_cpu_seconds
 <median process CPU time>` (CPU time is the fair figure on a loaded machine).
 """
@@ -18,7 +27,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 OBS, ACTIONS = 2, 5
-TOKEN = OBS + ACTIONS + 4
+TOKEN = 2 * OBS + ACTIONS + 4
 
 
 class Block(nn.Module):
@@ -46,7 +55,7 @@ def head(d, hidden, out):
 
 
 class Net(nn.Module):
-    def __init__(self, d=64, heads=8, layers=4, d_ff=64, max_len=1500, hidden=64, critics=2):
+    def __init__(self, d, heads, layers, d_ff, max_len, hidden, critics=2):
         super().__init__()
         self.critics = critics
         self.enc_1 = nn.Linear(TOKEN, hidden)
@@ -76,16 +85,29 @@ def next_step(x):
     return torch.cat([x[:, 1:], torch.zeros_like(x[:, :1])], 1)
 
 
-def update(net, target, opt, batch, lam, gamma=0.99, tau=0.005, ent=0.05):
-    tokens, actions, rewards, costs, violated, valid, td_valid, boot = batch
+def n_step_targets(r, boot, td_valid, v_next, gamma, n):
+    y = r + gamma * boot * v_next
+    valid_next = next_step(td_valid)
+    for _ in range(1, n):
+        ahead = valid_next * next_step(y) + (1 - valid_next) * v_next
+        y = r + gamma * boot * ahead
+    return y
+
+
+def masked_mean(x, m):
+    return (x * m).sum() / m.sum().clamp_min(1.0)
+
+
+def update(net, target, opt, batch, lam, args):
+    tokens, actions, rewards, costs, violated, valid, td_valid, boot, cost_boot = batch
     h = net.encode(tokens)
     with torch.no_grad():
         ht = target.encode(tokens)
         pi_t = target.actor(ht).softmax(-1).unsqueeze(2)
         v = (target.values(target.critic, ht) * pi_t).sum(-1).amin(-1)
         vc = (target.values(target.cost_critic, ht) * pi_t).sum(-1).mean(-1)
-        y = rewards + gamma * boot * next_step(v)
-        yc = costs + gamma * boot * next_step(vc)
+        y = n_step_targets(rewards, boot, td_valid, next_step(v), args.gamma, args.n_step)
+        yc = n_step_targets(costs, cost_boot, td_valid, next_step(vc), args.gamma, args.n_step)
     q_all = net.values(net.critic, h)
     qc_all = net.values(net.cost_critic, h)
     idx = actions.view(*actions.shape, 1, 1).expand(-1, -1, net.critics, 1)
@@ -93,55 +115,70 @@ def update(net, target, opt, batch, lam, gamma=0.99, tau=0.005, ent=0.05):
     qc_taken = qc_all.gather(3, idx).squeeze(3)
     logp = net.actor(h).log_softmax(-1)
     pi = logp.exp()
-    per_action = -q_all.detach().amin(2) + lam * violated.unsqueeze(-1) * qc_all.detach().mean(2)
+    penalty = lam * args.reward_scale
+    per_action = -q_all.detach().amin(2) + qc_all.detach().mean(2) * violated.unsqueeze(-1) * penalty
     entropy = -(pi * logp).sum(-1)
-    objective = (pi * per_action).sum(-1) - ent * entropy
-    mean = lambda x, m: (x * m).sum() / m.sum().clamp_min(1.0)
+    objective = (pi * per_action).sum(-1) - args.entropy_coef * entropy
     m = td_valid.unsqueeze(-1).expand(-1, -1, net.critics)
-    lv = mean((q_taken - y.unsqueeze(-1)) ** 2, m)
-    lc = mean((qc_taken - yc.unsqueeze(-1)) ** 2, m)
-    lp = mean(objective, valid)
+    lv = masked_mean((q_taken - y.unsqueeze(-1)) ** 2, m)
+    lc = masked_mean((qc_taken - yc.unsqueeze(-1)) ** 2, m)
+    lp = masked_mean(objective, valid)
+    loss = (lv + lc) * args.critic_weight + lp
     opt.zero_grad()
-    (lv + lc + lp).backward()
+    loss.backward()
     torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
     opt.step()
     with torch.no_grad():
         for t, o in zip(target.parameters(), net.parameters()):
-            t.mul_(1 - tau).add_(o, alpha=tau)
+            t.mul_(1 - args.tau).add_(o, alpha=args.tau)
     return float(lv), float(lc), float(lp)
 
 
 def main():
     ap = argparse.ArgumentParser()
-    ap.add_argument("--batch", type=int, default=32)
-    ap.add_argument("--seq", type=int, default=1500)
-    ap.add_argument("--reps", type=int, default=3)
-    ap.add_argument("--threads", type=int, default=2)
+    ap.add_argument("--batch", type=int, default=8)
+    ap.add_argument("--seq", type=int, default=480)
+    ap.add_argument("--d-model", type=int, default=64)
+    ap.add_argument("--heads", type=int, default=8)
+    ap.add_argument("--layers", type=int, default=2)
+    ap.add_argument("--d-ff", type=int, default=128)
+    ap.add_argument("--hidden", type=int, default=64)
+    ap.add_argument("--n-step", type=int, default=1)
+    ap.add_argument("--gamma", type=float, default=0.99)
+    ap.add_argument("--tau", type=float, default=0.005)
+    ap.add_argument("--entropy-coef", type=float, default=0.05)
+    ap.add_argument("--reward-scale", type=float, default=10.0)
+    ap.add_argument("--critic-weight", type=float, default=1.0)
+    ap.add_argument("--reps", type=int, default=5)
+    ap.add_argument("--threads", type=int, default=1)
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     torch.manual_seed(0)
     b, l = args.batch, args.seq
-    net = Net(max_len=l)
+    net = Net(args.d_model, args.heads, args.layers, args.d_ff, l, args.hidden)
     target = copy.deepcopy(net).eval()
     for p in target.parameters():
         p.requires_grad_(False)
     opt = torch.optim.Adam(net.parameters(), lr=3e-4, betas=(0.9, 0.99), eps=1e-8)
     ones = torch.ones(b, l)
+    ends = torch.zeros(b, l)
+    ends[:, 29::30] = 1.0  # episodes of 30 steps
     batch = (
         torch.randn(b, l, TOKEN),
         torch.randint(0, ACTIONS, (b, l)),
-        (torch.rand(b, l) < 0.01).float() * 10.0,
+        (torch.rand(b, l) < 0.01).float() * args.reward_scale,
         (torch.rand(b, l) < 0.2).float(),
         (torch.rand(b, l) < 0.5).float(),
         ones,
         ones,
         ones,
+        ones - ends,
     )
-    update(net, target, opt, batch, 0.5)  # warm-up
+    update(net, target, opt, batch, 0.5, args)  # warm-up
     times, cpu = [], []
     for _ in range(args.reps):
         start, start_cpu = time.perf_counter(), time.process_time()
-        update(net, target, opt, batch, 0.5)
+        update(net, target, opt, batch, 0.5, args)
         times.append(time.perf_counter() - start)
         cpu.append(time.process_time() - start_cpu)
     print(f"torch_update_seconds {statistics.median(times):.4f}")

@@ -3,17 +3,23 @@
 //! 1. Acting one step with the KV cache against recomputing the full context
 //!    at length 1500 (Table 1 transformer, 12 trajectories): goal >= 20x.
 //! 2. Trajectories collected per second (SafeDarkRoom, quick and Table 1 presets).
-//! 3. One EPPO update at Table 1 size (batch 32 x 1500 steps) against the same
-//!    model and update in PyTorch eager (`icrl/benches/eppo_update_torch.py`,
-//!    run with `$ICRL_TORCH_PYTHON`, default `python3`): goal <= 0.8x.
+//! 3. One EPPO update at the quick SafeDarkRoom preset's size (batch 8 x 480
+//!    steps, K = 16; `ICRL_BENCH_UPDATE=table1`: batch 32 x 1500) against
+//!    the same model and update in PyTorch eager
+//!    (`icrl/benches/eppo_update_torch.py`, run with `$ICRL_TORCH_PYTHON`,
+//!    default `python3`), on process CPU time: goal <= 0.8x. Also where the
+//!    Rust update's time goes, by phase.
+//! 4. Training speed, overlapped loop against synchronous, at the same replay
+//!    ratio, on the quick SafeDarkRoom, Point and Car presets: updates per
+//!    wall second and the share of a core each thread kept busy.
 //!
 //! `ICRL_BENCH_THREADS` (default 2) sets the libtorch threads of both sides;
-//! `ICRL_BENCH_ONLY=kv,collect,update` runs a subset (default: all).
+//! `ICRL_BENCH_ONLY=kv,collect,update,overlap` runs a subset (default: all).
 
 use std::process::Command;
 use std::time::Instant;
 
-use icrl::eppo::{EppoConfig, Learner, Trajectory};
+use icrl::eppo::{EppoConfig, Learner, PretrainOptions, Trajectory, train};
 use icrl::model::Transformer;
 use icrl::presets::{apply_overrides, preset_table, resolve};
 use rand::{Rng, SeedableRng};
@@ -64,7 +70,11 @@ fn timed(reps: usize, mut f: impl FnMut()) -> f64 {
 }
 
 fn config(preset: &str, sets: &[&str]) -> EppoConfig {
-    let mut table = preset_table("eppo", "darkroom", preset).expect("built-in preset");
+    env_config("darkroom", preset, sets)
+}
+
+fn env_config(env: &str, preset: &str, sets: &[&str]) -> EppoConfig {
+    let mut table = preset_table("eppo", env, preset).expect("built-in preset");
     let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
     apply_overrides(&mut table, &sets).expect("valid overrides");
     resolve(preset, table).expect("valid preset")
@@ -128,9 +138,9 @@ fn collection(cfg: EppoConfig, rounds: usize) -> (f64, f64) {
     (trajs as f64 / s, steps as f64 / s)
 }
 
-/// A 50-episode x 30-step trajectory of random data (Table 1 shape).
-fn synthetic(rng: &mut rand_chacha::ChaCha8Rng) -> Trajectory {
-    let (k, t_max, n_act) = (50, 30, 5);
+/// A k-episode x 30-step trajectory of random data.
+fn synthetic(k: usize, rng: &mut rand_chacha::ChaCha8Rng) -> Trajectory {
+    let (t_max, n_act) = (30, 5);
     let n = k * t_max;
     let mut t = Trajectory {
         budget: rng.gen_range(1.0..15.0),
@@ -138,6 +148,8 @@ fn synthetic(rng: &mut rand_chacha::ChaCha8Rng) -> Trajectory {
     };
     for s in 0..n {
         t.obs
+            .extend([rng.gen_range(0..9) as f32, rng.gen_range(0..9) as f32]);
+        t.next_obs
             .extend([rng.gen_range(0..9) as f32, rng.gen_range(0..9) as f32]);
         let a = rng.gen_range(0..n_act);
         t.actions
@@ -166,7 +178,8 @@ fn main() {
         .and_then(|s| s.parse().ok())
         .unwrap_or(2);
     tch::set_num_threads(threads);
-    let only = std::env::var("ICRL_BENCH_ONLY").unwrap_or_else(|_| "kv,collect,update".into());
+    let only =
+        std::env::var("ICRL_BENCH_ONLY").unwrap_or_else(|_| "kv,collect,update,overlap".into());
     let run = |part: &str| only.split(',').any(|p| p.trim() == part);
     let table1 = config("table1", &[]);
     println!("# Model / EPPO benchmarks ({threads} libtorch threads)\n");
@@ -178,7 +191,11 @@ fn main() {
         collect_part();
     }
     if run("update") {
-        update_part(&table1, threads);
+        let preset = std::env::var("ICRL_BENCH_UPDATE").unwrap_or_else(|_| "quick".into());
+        update_part(&config(&preset, &[]), threads);
+    }
+    if run("overlap") {
+        overlap_part();
     }
 }
 
@@ -203,29 +220,78 @@ fn collect_part() {
     );
 }
 
-fn update_part(table1: &EppoConfig, threads: i32) {
-    let mut learner = Learner::new(table1.clone(), EnvName::DarkRoom).expect("learner");
+fn update_part(cfg: &EppoConfig, threads: i32) {
+    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).expect("learner");
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
-    for _ in 0..table1.batch_size {
-        learner.replay.push(synthetic(&mut rng));
+    for _ in 0..cfg.batch_size {
+        learner.replay.push(synthetic(cfg.k_max, &mut rng));
     }
-    let (rust, rust_cpu) = timed_cpu(3, || {
+    let reps = 5;
+    learner.update().expect("warm-up update");
+    let before = learner.times;
+    let (rust, rust_cpu) = timed_cpu(reps, || {
         learner.update().expect("update");
     });
+    let (b, l, m) = (cfg.batch_size, cfg.model.max_len, &cfg.model);
     println!(
-        "| one EPPO update, batch 32 x 1500 (tch) | {rust:.2} s wall, {rust_cpu:.2} s CPU | |"
+        "| one EPPO update, batch {b} x {l}, {} layers (tch) | {rust:.3} s wall, {rust_cpu:.3} s CPU | |",
+        m.n_layers
     );
+    // Phase shares of the timed updates (the warm-up excluded).
+    let t = learner.times;
+    let phases = [
+        ("batch assembly", t.batch - before.batch),
+        (
+            "forward (online, target, heads, losses)",
+            t.forward - before.forward,
+        ),
+        ("backward", t.backward - before.backward),
+        ("grad norm, clip, Adam", t.optimizer - before.optimizer),
+        ("lambda, Polyak, scalars", t.targets - before.targets),
+    ];
+    let total: f64 = phases.iter().map(|p| p.1).sum();
+    for (name, secs) in phases {
+        println!(
+            "| update phase: {name} | {:.1} ms ({:.1} %) | |",
+            secs / (reps + 1) as f64 * 1e3,
+            100.0 * secs / total
+        );
+    }
     let python = std::env::var("ICRL_TORCH_PYTHON").unwrap_or_else(|_| "python3".into());
     let script = concat!(env!("CARGO_MANIFEST_DIR"), "/benches/eppo_update_torch.py");
+    let arg = |x: f64| x.to_string();
     let out = Command::new(&python)
+        .args([script, "--batch", &b.to_string(), "--seq", &l.to_string()])
         .args([
-            script,
-            "--batch",
-            "32",
-            "--seq",
-            "1500",
+            "--d-model",
+            &m.d_model.to_string(),
+            "--heads",
+            &m.n_heads.to_string(),
+        ])
+        .args([
+            "--layers",
+            &m.n_layers.to_string(),
+            "--d-ff",
+            &m.d_ff.to_string(),
+        ])
+        .args(["--hidden", &cfg.head_hidden.to_string()])
+        .args([
+            "--n-step",
+            &cfg.n_step.to_string(),
+            "--gamma",
+            &arg(cfg.gamma),
+        ])
+        .args([
+            "--tau",
+            &arg(cfg.tau),
+            "--entropy-coef",
+            &arg(cfg.entropy_coef),
+        ])
+        .args(["--reward-scale", &arg(cfg.reward_scale)])
+        .args(["--critic-weight", &arg(cfg.critic_weight)])
+        .args([
             "--reps",
-            "3",
+            &reps.to_string(),
             "--threads",
             &threads.to_string(),
         ])
@@ -242,7 +308,7 @@ fn update_part(table1: &EppoConfig, threads: i32) {
                 field("torch_update_cpu_seconds "),
             ) {
                 (Some(torch), Some(torch_cpu)) => println!(
-                    "| the same update, PyTorch eager | {torch:.2} s wall, {torch_cpu:.2} s CPU | |\n\
+                    "| the same update, PyTorch eager | {torch:.3} s wall, {torch_cpu:.3} s CPU | |\n\
                      | tch / PyTorch, wall time | {:.2}x | |\n\
                      | **tch / PyTorch, CPU time** | **{:.2}x** | <= 0.8x |",
                     rust / torch,
@@ -259,5 +325,64 @@ fn update_part(table1: &EppoConfig, threads: i32) {
                 .unwrap_or("")
         ),
         Err(e) => println!("| PyTorch eager | not run: cannot start `{python}` ({e}) | |"),
+    }
+}
+
+/// Updates per wall second and busy shares of one short quick-preset run.
+fn training_speed(env: EnvName, overlap: bool, updates: u64) -> (f64, f64, f64) {
+    let out = std::env::temp_dir().join(format!("icrl-bench-overlap-{}", std::process::id()));
+    let sets = [
+        format!("total_updates={updates}"),
+        format!("overlap={overlap}"),
+        // Updates from the first round on; the ratio is the preset's.
+        "learning_starts=0".into(),
+        "checkpoint_every=100000".into(),
+    ];
+    let sets: Vec<&str> = sets.iter().map(String::as_str).collect();
+    let cfg = env_config(env.as_str(), "quick", &sets);
+    tch::set_num_threads(cfg.torch_threads);
+    let report = train(&PretrainOptions {
+        env,
+        cfg,
+        out: out.clone(),
+        resume: None,
+        progress: false,
+    })
+    .expect("training");
+    let text = std::fs::read_to_string(report.run_dir.join("metrics.jsonl")).expect("metrics");
+    let last: serde_json::Value =
+        serde_json::from_str(text.lines().last().expect("a record")).expect("json");
+    let f = |k: &str| last[k].as_f64().unwrap_or(f64::NAN);
+    let _ = std::fs::remove_dir_all(&out);
+    (
+        f("charts/updates_per_s"),
+        f("charts/cpu_learner"),
+        f("charts/cpu_actor"),
+    )
+}
+
+fn overlap_part() {
+    let load = std::fs::read_to_string("/proc/loadavg").unwrap_or_default();
+    println!(
+        "| load average at the start of the training-speed runs | {} | |",
+        load.split_whitespace()
+            .take(3)
+            .collect::<Vec<_>>()
+            .join(" ")
+    );
+    for (env, updates, goal) in [
+        (EnvName::DarkRoom, 64, 1.3),
+        (EnvName::Point, 64, 1.5),
+        (EnvName::Car, 32, 1.6),
+    ] {
+        let (sync, sync_cpu, _) = training_speed(env, false, updates);
+        let (over, learner_cpu, actor_cpu) = training_speed(env, true, updates);
+        println!(
+            "| {env} quick, {updates} updates: updates/s synchronous vs overlapped | {sync:.2} vs {over:.2}: **{:.2}x** (busy: synchronous {:.0} % of a core; overlapped learner {:.0} %, actor {:.0} %) | >= {goal}x |",
+            over / sync,
+            100.0 * sync_cpu,
+            100.0 * learner_cpu,
+            100.0 * actor_cpu
+        );
     }
 }

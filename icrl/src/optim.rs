@@ -100,12 +100,26 @@ impl Adam {
     /// gradient norm is NaN or infinite: the parameters and moments stay as
     /// they were, and the error says which was not finite.
     pub fn try_backward_step(&mut self, loss: &Tensor) -> Result<f64, NonFinite> {
+        self.try_backward(loss)?;
+        self.try_step()
+    }
+
+    /// The first half of [`Adam::try_backward_step`]: backpropagates `loss`
+    /// into cleared gradients, refusing a loss that is not finite.
+    pub fn try_backward(&mut self, loss: &Tensor) -> Result<(), NonFinite> {
         let loss_value = loss.double_value(&[]);
         if !loss_value.is_finite() {
             return Err(NonFinite::Loss(loss_value));
         }
         self.zero_grad();
         loss.backward();
+        Ok(())
+    }
+
+    /// The second half: clips the gradients [`Adam::try_backward`] left and
+    /// takes the Adam step; returns the norm before clipping, or refuses
+    /// (clearing them) when it is not finite.
+    pub fn try_step(&mut self) -> Result<f64, NonFinite> {
         let grads: Vec<Tensor> = self.params.iter().map(|(_, p, _, _)| p.grad()).collect();
         let defined: Vec<&Tensor> = grads.iter().filter(|g| g.defined()).collect();
         let norm = if defined.is_empty() {

@@ -134,15 +134,19 @@ pub fn run_in_out(
 }
 
 /// Settings a resumed EPPO run may change: its length, how it saves, and
-/// the machine it runs on. Any other change (`lr`, `seed`, the model, ...)
+/// the machine it runs on (threads, device, and whether collection and
+/// learning overlap: the replay ratio stays, so only the policy's lag does
+/// not). Any other change (`lr`, `seed`, the model, `replay_ratio`, ...)
 /// would make one run of two configurations, and is refused.
-pub const EPPO_RESUME_MAY_CHANGE: [&str; 6] = [
+pub const EPPO_RESUME_MAY_CHANGE: [&str; 8] = [
     "total_updates",
     "checkpoint_every",
     "keep_checkpoints",
     "torch_threads",
     "env_threads",
     "device",
+    "overlap",
+    "learner_threads",
 ];
 
 /// The resume rule (EPPO; AD has the same in `ad::check_resumable`): the

@@ -7,12 +7,15 @@ use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use tch::{Device, Kind, Tensor};
 
-use safety_envs::{Orientation, VecAction, VecEnv, sample_task, spawn_config};
+use std::sync::atomic::{AtomicBool, Ordering};
+
+use safety_envs::{EnvName, Orientation, VecAction, VecEnv, sample_task, spawn_config};
 
 use super::Learner;
 use super::config::{EppoConfig, EppoError};
 use super::net::{EppoNet, NetSpec};
 use super::replay::{Trajectory, push_token};
+use super::timing::PhaseTimes;
 use crate::agent::StepInput;
 use crate::model::KvCache;
 use crate::task_seeds::pretrain_task_seed;
@@ -131,14 +134,59 @@ fn round_stats(trajs: &[Trajectory], steps: u64, discrete: bool) -> RoundStats {
 }
 
 impl Learner {
+    /// Collects one round with the learner's own policy, RNG and counters
+    /// (the synchronous loop) and adds it to the replay.
+    pub fn collect(&mut self, venv: &mut VecEnv) -> Result<RoundStats, EppoError> {
+        let (trajs, stats) = Collector {
+            net: &self.net,
+            cfg: &self.cfg,
+            spec: &self.spec,
+            env: self.env,
+            rng: &mut self.rng,
+            env_steps: &mut self.env_steps,
+            tasks_drawn: &mut self.tasks_drawn,
+            times: &mut self.times,
+            quit: None,
+        }
+        .round(venv)?;
+        for t in trajs {
+            self.replay.push(t);
+        }
+        Ok(stats)
+    }
+}
+
+/// What collection reads and advances: the acting policy, the RNG of tasks,
+/// budgets and actions, and the counters behind the next task seeds and the
+/// exploration schedule. The synchronous loop lends the learner's own
+/// ([`Learner::collect`]); the overlapped loop's actor owns a copy
+/// (`overlap.rs`).
+pub(super) struct Collector<'a> {
+    pub(super) net: &'a EppoNet,
+    pub(super) cfg: &'a EppoConfig,
+    pub(super) spec: &'a NetSpec,
+    pub(super) env: EnvName,
+    pub(super) rng: &'a mut ChaCha8Rng,
+    pub(super) env_steps: &'a mut u64,
+    pub(super) tasks_drawn: &'a mut u64,
+    pub(super) times: &'a mut PhaseTimes,
+    /// Set by the overlapped learner when training stops: the round is
+    /// abandoned at the next step and gathers nothing.
+    pub(super) quit: Option<&'a AtomicBool>,
+}
+
+impl Collector<'_> {
     /// Collects `cfg.n_envs` trajectories at once: each in a fresh centre-oriented
     /// task with its own budget and K, acted in one batch through the KV cache.
-    pub fn collect(&mut self, venv: &mut VecEnv) -> Result<RoundStats, EppoError> {
+    pub(super) fn round(
+        &mut self,
+        venv: &mut VecEnv,
+    ) -> Result<(Vec<Trajectory>, RoundStats), EppoError> {
         let n = venv.len();
         let (budgets, ks, eps_scale) = self.draw_tasks(venv)?;
-        let exploration = self.cfg.exploration(self.env_steps);
+        let exploration = self.cfg.exploration(*self.env_steps);
         let horizons: Vec<usize> = ks.iter().map(|k| k * self.cfg.max_episode_steps).collect();
-        let mut acting = Acting::new(&self.net, &self.spec, &self.cfg, &budgets);
+        let mut acting = Acting::new(self.net, self.spec, self.cfg, &budgets);
         let mut trajs: Vec<Trajectory> = budgets
             .iter()
             .enumerate()
@@ -157,6 +205,9 @@ impl Learner {
         let (mut ep_ret, mut ep_cost) = (vec![0f32; n], vec![0f32; n]);
         let mut steps = 0u64;
         while active.iter().any(|&x| x) {
+            if self.quit.is_some_and(|q| q.load(Ordering::Relaxed)) {
+                return Ok((Vec::new(), RoundStats::default()));
+            }
             let input = StepInput {
                 obs: &obs,
                 arrived_obs: &arrived,
@@ -166,22 +217,29 @@ impl Learner {
                 episode_start: &start,
             };
             let ctg_now = acting.observe(&input);
-            let policy = acting.policy(&self.net, &input)?;
+            self.times
+                .time(|t| &mut t.tokens, || acting.write_tokens(&input));
+            let (net, spec, rng) = (self.net, self.spec, &mut *self.rng);
             let eps: Vec<f64> = (0..n)
                 .map(|i| {
                     let found = trajs[i].episode_success.contains(&true);
                     exploration.at(trajs[i].len(), horizons[i], eps_scale[i], found)
                 })
                 .collect();
-            let (mut net_actions, mut env_actions) =
-                sample_actions(&policy, &self.spec, &eps, false, &mut self.rng);
+            let (mut net_actions, mut env_actions) = self.times.time(
+                |t| &mut t.acting,
+                || -> Result<_, EppoError> {
+                    let policy = acting.forward(net)?;
+                    Ok(sample_actions(&policy, spec, &eps, false, rng))
+                },
+            )?;
             if self.cfg.scripted_first_episode {
                 let first_episode: Vec<bool> = (0..n)
                     .map(|i| active[i] && trajs[i].episode_returns.is_empty())
                     .collect();
                 script_actions(
                     venv,
-                    &self.spec,
+                    self.spec,
                     &first_episode,
                     &mut net_actions,
                     &mut env_actions,
@@ -199,11 +257,16 @@ impl Learner {
                 t.start.push(start[i]);
                 t.episode.push(t.episode_returns.len() as u32);
             }
-            let outcomes = match &env_actions {
-                EnvActions::Discrete(idx) => venv.step(VecAction::Discrete(idx))?,
-                EnvActions::Continuous(v) => venv.step(VecAction::Continuous(v))?,
-            }
-            .to_vec();
+            let outcomes = self.times.time(
+                |t| &mut t.env_step,
+                || -> Result<_, EppoError> {
+                    Ok(match &env_actions {
+                        EnvActions::Discrete(idx) => venv.step(VecAction::Discrete(idx))?,
+                        EnvActions::Continuous(v) => venv.step(VecAction::Continuous(v))?,
+                    }
+                    .to_vec())
+                },
+            )?;
             obs.copy_from_slice(venv.observations());
             for i in 0..n {
                 let o = outcomes[i];
@@ -244,12 +307,9 @@ impl Learner {
                 }
             }
         }
-        self.env_steps += steps;
+        *self.env_steps += steps;
         let stats = round_stats(&trajs, steps, self.spec.n_actions.is_some());
-        for t in trajs {
-            self.replay.push(t);
-        }
-        Ok(stats)
+        Ok((trajs, stats))
     }
 
     /// Draws one round's tasks (fresh centre-oriented, or from the pool),
@@ -262,11 +322,11 @@ impl Learner {
         let mut eps_scale = vec![1f64; n];
         for i in 0..n {
             let index = match self.cfg.task_pool {
-                0 => self.tasks_drawn,
-                pool => self.tasks_drawn % pool,
+                0 => *self.tasks_drawn,
+                pool => *self.tasks_drawn % pool,
             };
             let seed = pretrain_task_seed(self.cfg.seed, index);
-            self.tasks_drawn += 1;
+            *self.tasks_drawn += 1;
             let task = sample_task(&spawn, Orientation::Centre, seed)?;
             venv.set_task(i, &task)?;
             budgets[i] = self.rng.gen_range(self.cfg.ctg_min..=self.cfg.ctg_max);
@@ -276,7 +336,8 @@ impl Learner {
                 eps_scale[i] = self.rng.r#gen();
             }
         }
-        venv.reset(&seeds)?;
+        self.times
+            .time(|t| &mut t.env_step, || venv.reset(&seeds))?;
         Ok((budgets, ks, eps_scale))
     }
 }
@@ -336,6 +397,12 @@ impl Acting {
         net: &EppoNet,
         input: &StepInput<'_>,
     ) -> Result<Policy, EppoError> {
+        self.write_tokens(input);
+        self.forward(net)
+    }
+
+    /// Writes the step's B tokens (after [`Acting::observe`] set the CTGs).
+    pub(super) fn write_tokens(&mut self, input: &StepInput<'_>) {
         let b = self.budgets.len();
         let (od, a) = (self.spec.obs_dim, self.spec.act_flat());
         self.tokens.clear();
@@ -353,6 +420,12 @@ impl Acting {
                 input.episode_start[i],
             );
         }
+    }
+
+    /// The KV-cached forward step over the written tokens; returns the policy.
+    pub(super) fn forward(&mut self, net: &EppoNet) -> Result<Policy, EppoError> {
+        let b = self.budgets.len();
+        let a = self.spec.act_flat();
         let device = net.enc_1.ws.device();
         let x = Tensor::from_slice(&self.tokens)
             .view([b as i64, 1, self.spec.token_dim() as i64])

@@ -201,6 +201,30 @@ pub struct EppoConfig {
     /// Which steps the actor's cost penalty lambda x Qc weighs (issue 18).
     #[serde(default)]
     pub penalty: PenaltyForm,
+
+    // The loop's shape (issue 20): both together, so merges stay simple.
+    /// Collect and learn at once on two threads (`overlap.rs`): an actor
+    /// steps the environments with a copy of the policy, refreshed after
+    /// every round's updates, one round behind the synchronous loop's; the
+    /// learner updates meanwhile. The replay ratio holds whatever either
+    /// side's speed, and a run stays deterministic under its seed. Wants
+    /// `torch_threads = 1` on two cores. false: collect, then update.
+    #[serde(default)]
+    pub overlap: bool,
+    /// The replay ratio as updates per environment step: after each round
+    /// the learner catches up to floor(replay_ratio x (env_steps -
+    /// learning_starts)) updates in total. Absent: `updates_per_round`
+    /// updates after each round (updates per collected trajectory =
+    /// updates_per_round / n_envs), as in the paper's loop.
+    #[serde(default)]
+    pub replay_ratio: Option<f64>,
+    /// Overlapped loop: libtorch intra-op threads of the learner's thread (0:
+    /// `torch_threads`); the actor keeps `torch_threads`. Where acting is a
+    /// tenth of the work (SafeDarkRoom) the actor mostly waits, and 2 lends
+    /// its core to the update (not yet measured on a free machine:
+    /// BENCHMARKS.md).
+    #[serde(default)]
+    pub learner_threads: i32,
 }
 
 /// Where the actor pays lambda x reward_scale x Qc.
@@ -295,6 +319,12 @@ impl EppoConfig {
         ])
         .or_else(bad)?;
         crate::guard::check_torch_threads(self.torch_threads).or_else(bad)?;
+        if !(0..=1024).contains(&self.learner_threads) {
+            return bad(format!(
+                "learner_threads = {}: must be in [0, 1024] (0: torch_threads)",
+                self.learner_threads
+            ));
+        }
         check_numbers(&[
             ("ctg_min", f64::from(self.ctg_min), Range::NON_NEGATIVE),
             ("ctg_max", f64::from(self.ctg_max), Range::POSITIVE),
@@ -336,6 +366,13 @@ impl EppoConfig {
             ("novelty_cell", self.novelty_cell, Range::POSITIVE),
         ])
         .or_else(bad)?;
+        if let Some(r) = self.replay_ratio
+            && !(r.is_finite() && r > 0.0)
+        {
+            return bad(format!(
+                "replay_ratio = {r} must be a positive number (updates per environment step)"
+            ));
+        }
         if self.k_min == 0 || self.k_min > self.k_max {
             return bad(format!(
                 "need 1 <= k_min <= k_max, got k_min = {}, k_max = {}",

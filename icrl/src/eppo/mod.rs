@@ -4,8 +4,19 @@
 //! beside it: `config.rs` (hyperparameters, validation, exploration),
 //! `net.rs` (networks, heads, the tanh-Gaussian), `replay.rs` (trajectories,
 //! the buffer, tokens and batches), `losses.rs` (Lv, Lc, Lp, Eq. 7, Polyak),
-//! `collect.rs` (acting in the vectorised environments), `checkpoint.rs`
-//! (save and resume) and `agent.rs` (the frozen [`EppoAgent`] evaluation drives).
+//! `collect.rs` (acting in the vectorised environments), `overlap.rs` (the
+//! loop with collection and learning on two threads), `timing.rs` (where the
+//! time goes), `checkpoint.rs` (save and resume) and `agent.rs` (the frozen
+//! [`EppoAgent`] evaluation drives).
+//!
+//! The replay ratio is a setting, never a consequence of speed: after each
+//! round the learner runs the updates [`Learner::updates_owed`] says
+//! (`updates_per_round`, or `replay_ratio` updates per environment step),
+//! in the synchronous loop and the overlapped one alike. Overlapped, the
+//! learner waits for the next round once they are done, and the actor waits
+//! for fresh weights once it is a round ahead, so the only difference from
+//! the synchronous loop is a policy one round staler (`overlap.rs`); both
+//! loops are deterministic under a seed.
 //!
 //! Off-policy actor-critic after AMAGO: a time-step MLP encodes each
 //! (s_t, a_{t-1}, r_t, c_t, CTG_t, episode-start) tuple; the shared causal
@@ -58,7 +69,10 @@
 //! k > 1 | not found / found earlier in the trajectory)), `found_goal`
 //! (fraction of trajectories that found it), `lambda`, `losses/value_loss`, `losses/cost_value_loss`,
 //! `losses/policy_loss`, `losses/entropy`, `losses/grad_norm`, `charts/epsilon`,
-//! `charts/updates_per_s`, `charts/env_steps_per_s`. Losses are averaged over
+//! `charts/updates_per_s`, `charts/env_steps_per_s`, `charts/cpu_learner` and
+//! (overlapped) `charts/cpu_actor` (the share of a core each thread kept busy
+//! since the start), `time/<phase>` and `time/actor/<phase>` (cumulative wall
+//! seconds per phase, [`PhaseTimes`]). Losses are averaged over
 //! the round's updates and are `null` in rounds without an update (before
 //! `learning_starts`).
 
@@ -69,12 +83,14 @@ mod config;
 mod losses;
 mod multiplier;
 mod net;
+mod overlap;
 mod relabel;
 mod replay;
 #[cfg(test)]
 pub(crate) mod tests;
+mod timing;
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::time::Instant;
 
 use rand::SeedableRng;
@@ -92,6 +108,7 @@ pub use multiplier::{Gains, Multiplier};
 pub use net::{EppoNet, NetSpec};
 pub use relabel::{pick_goal, relabel};
 pub use replay::{Replay, Trajectory};
+pub use timing::{PhaseTimes, thread_cpu_seconds};
 
 use crate::checkpoint::{MetricsWriter, RunDir};
 use crate::optim::{Adam, AdamConfig};
@@ -123,6 +140,8 @@ pub struct Learner {
     pub replay: Replay,
     /// Where the environment's goal counts as reached (hindsight relabelling).
     pub goal_rule: GoalRule,
+    /// Wall seconds per phase on this thread since the run (or resume) began.
+    pub times: PhaseTimes,
 }
 
 impl Learner {
@@ -176,6 +195,7 @@ impl Learner {
             env_steps: 0,
             tasks_drawn: 0,
             goal_rule,
+            times: PhaseTimes::default(),
             env,
             spec,
             device,
@@ -196,6 +216,7 @@ impl Learner {
     /// One update on a batch sampled from the replay: Lv, Lc, Lp, then lambda
     /// (Eq. 7) and the Polyak targets.
     pub fn update(&mut self) -> Result<UpdateStats, EppoError> {
+        let mut clock = Instant::now();
         // libtorch's generator (dropout, reparameterisation noise) is reseeded per
         // update, so a resumed run draws what the uninterrupted one would have.
         tch::manual_seed((self.cfg.seed ^ 0x5EED_0000).wrapping_add(self.updates) as i64);
@@ -224,6 +245,7 @@ impl Learner {
         // Eq. (7) prices the costs the policy really paid: a relabelled
         // episode cut at its new goal holds only part of them.
         batch.max_violation = sampled.iter().map(|t| t.max_violation()).collect();
+        self.times.batch += lap(&mut clock);
         let (lv, lc, lp, entropy, diag) = losses(
             &self.net,
             &self.target,
@@ -232,28 +254,30 @@ impl Learner {
             &self.cfg,
         )?;
         let loss = (&lv + &lc) * self.cfg.critic_weight + &lp;
+        self.times.forward += lap(&mut clock);
         // A NaN or infinite loss or gradient is never applied: the weights
         // stay those of the last good update and `train` stops with this.
-        let grad_norm = self
-            .opt
-            .try_backward_step(&loss)
-            .map_err(|e| EppoError::NonFinite {
-                update: self.updates + 1,
-                what: format!(
-                    "{e} (value loss {:.4e}, cost value loss {:.4e}, policy loss {:.4e})",
-                    lv.double_value(&[]),
-                    lc.double_value(&[]),
-                    lp.double_value(&[])
-                ),
-                checkpoint: None,
-            })?;
+        let non_finite = |e: crate::optim::NonFinite| EppoError::NonFinite {
+            update: self.updates + 1,
+            what: format!(
+                "{e} (value loss {:.4e}, cost value loss {:.4e}, policy loss {:.4e})",
+                lv.double_value(&[]),
+                lc.double_value(&[]),
+                lp.double_value(&[])
+            ),
+            checkpoint: None,
+        };
+        self.opt.try_backward(&loss).map_err(non_finite)?;
+        self.times.backward += lap(&mut clock);
+        let grad_norm = self.opt.try_step().map_err(non_finite)?;
+        self.times.optimizer += lap(&mut clock);
         if self.updates >= self.cfg.lambda_warmup_updates {
             self.multiplier
                 .update(&batch.max_violation, &self.cfg.multiplier_gains());
         }
         polyak(&self.target_vs, &self.vs, self.cfg.tau);
         self.updates += 1;
-        Ok(UpdateStats {
+        let stats = UpdateStats {
             value_loss: lv.double_value(&[]),
             cost_value_loss: lc.double_value(&[]),
             policy_loss: lp.double_value(&[]),
@@ -263,8 +287,36 @@ impl Learner {
             q_mean: diag.q_mean.double_value(&[]),
             target_mean: diag.target_mean.double_value(&[]),
             log_std_mean: diag.log_std_mean.map_or(f64::NAN, |t| t.double_value(&[])),
-        })
+        };
+        self.times.targets += lap(&mut clock);
+        Ok(stats)
     }
+
+    /// The replay ratio: updates owed once a round has brought `env_steps`
+    /// where it is (none before `learning_starts`, none past `total_updates`).
+    /// Both loops ask after each round, so the updates per environment step
+    /// are the same whichever side is faster.
+    pub fn updates_owed(&self) -> u64 {
+        if self.env_steps < self.cfg.learning_starts {
+            return 0;
+        }
+        let owed = match self.cfg.replay_ratio {
+            Some(r) => {
+                let total = (r * (self.env_steps - self.cfg.learning_starts) as f64).floor() as u64;
+                total.saturating_sub(self.updates)
+            }
+            None => self.cfg.updates_per_round,
+        };
+        owed.min(self.cfg.total_updates.saturating_sub(self.updates))
+    }
+}
+
+/// Seconds since `clock`, which restarts.
+fn lap(clock: &mut Instant) -> f64 {
+    let now = Instant::now();
+    let secs = (now - *clock).as_secs_f64();
+    *clock = now;
+    secs
 }
 
 /// Options of one `icrl pretrain` run (the CLI fills it).
@@ -292,7 +344,8 @@ pub struct PretrainReport {
     pub random: crate::run_summary::ReturnCost,
 }
 
-/// Algorithm 1: collect rounds of trajectories, update, checkpoint, log.
+/// Algorithm 1: collect rounds of trajectories, update, checkpoint, log;
+/// one after the other, or at once with `overlap` (`overlap.rs`).
 pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
     // `_lock`: one process per run folder until training returns.
     let (run, mut learner, resumed_from, _lock) = match &opts.resume {
@@ -314,62 +367,143 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
     let cfg = learner.cfg.clone();
     run.write_config(&toml::to_string(&cfg).map_err(|e| EppoError::Config(e.to_string()))?)?;
     run.probe_checkpoint_path(cfg.total_updates)?;
-    let mut metrics = MetricsWriter::open(&run.metrics_path())?;
     let env_options = EnvOptions {
         max_episode_steps: Some(cfg.max_episode_steps),
         physics_steps_per_action: cfg.physics_steps_per_action,
     };
     // The scale the user reads progress against (seconds, even for Car).
     let random = crate::run_summary::random_policy(opts.env, &env_options, 100, cfg.seed)?;
-    let mut recent = crate::run_summary::RecentRounds::new(50);
     let envs = (0..cfg.n_envs)
         .map(|_| make_env(opts.env, &env_options))
         .collect::<Result<Vec<_>, _>>()?;
     let mut venv = VecEnv::new(envs, cfg.env_threads, true)?;
-    let bar = progress_bar(opts.progress, cfg.total_updates, learner.updates);
-    // Without a terminal indicatif draws nothing: print the bar's line to
-    // stderr instead, at most every 30 s, so logs show progress.
-    let log_lines = opts.progress && bar.is_hidden();
-    let mut last_log_line = Instant::now();
-    // The checkpoint resumed from is the last good one (newer step folders, if
-    // resuming an earlier one, belong to the abandoned continuation).
-    let mut last_ckpt = resumed_from.unwrap_or_default();
-    // A NaN update names the last good checkpoint (never one of NaN weights).
-    let non_finite = |e: EppoError, last: &Path| match e {
-        EppoError::NonFinite { update, what, .. } => EppoError::NonFinite {
-            update,
-            what,
-            checkpoint: (!last.as_os_str().is_empty()).then(|| last.to_path_buf()),
-        },
-        other => other,
-    };
-    let started = Instant::now();
-    let (start_updates, start_steps) = (learner.updates, learner.env_steps);
-    while learner.updates < cfg.total_updates {
-        let round = learner.collect(&mut venv)?;
-        let mut stats = Vec::new();
-        if learner.env_steps >= cfg.learning_starts {
-            for _ in 0..cfg.updates_per_round {
-                if learner.updates >= cfg.total_updates {
-                    break;
-                }
-                stats.push(learner.update().map_err(|e| non_finite(e, &last_ckpt))?);
-                bar.set_position(learner.updates);
-                if learner.updates % cfg.checkpoint_every == 0 {
-                    last_ckpt = learner.save_checkpoint(&run)?;
-                }
-                // First SIGINT/SIGTERM: stop after this update with a checkpoint.
-                if crate::stop::requested() {
-                    break;
-                }
+    let mut session = Session::start(run, &learner, opts.progress, random, resumed_from)?;
+    if cfg.overlap {
+        overlap::train(&mut learner, &mut venv, &mut session)?;
+    } else {
+        while learner.updates < cfg.total_updates {
+            let round = learner.collect(&mut venv)?;
+            let stats = learn(&mut learner, &mut session)?;
+            session.log_round(&mut learner, &round, &stats, None)?;
+            if crate::stop::requested() {
+                break;
             }
         }
-        let secs = started.elapsed().as_secs_f64().max(1e-9);
-        let ups = (learner.updates - start_updates) as f64 / secs;
-        let sps = (learner.env_steps - start_steps) as f64 / secs;
-        let record = round_record(&learner, &round, &stats, ups, sps);
-        metrics.write(&record)?;
-        recent.push(
+    }
+    session.finish(&learner)
+}
+
+/// The updates the replay ratio owes after a round ([`Learner::updates_owed`]),
+/// each followed by its checkpoint when due; the first SIGINT/SIGTERM stops
+/// them after the current one.
+fn learn(learner: &mut Learner, session: &mut Session) -> Result<Vec<UpdateStats>, EppoError> {
+    let mut stats = Vec::new();
+    for _ in 0..learner.updates_owed() {
+        stats.push(learner.update().map_err(|e| session.non_finite(e))?);
+        session.after_update(learner)?;
+        if crate::stop::requested() {
+            break;
+        }
+    }
+    Ok(stats)
+}
+
+/// A run's bookkeeping around the loop: its folder and metrics, the
+/// progress bar and log lines, the last good checkpoint, the clocks.
+struct Session {
+    run: RunDir,
+    metrics: MetricsWriter,
+    recent: crate::run_summary::RecentRounds,
+    random: crate::run_summary::ReturnCost,
+    bar: indicatif::ProgressBar,
+    /// Without a terminal indicatif draws nothing: the bar's line goes to
+    /// stderr instead, at most every 30 s, so logs show progress.
+    log_lines: bool,
+    last_log_line: Instant,
+    /// The checkpoint resumed from is the last good one (newer step folders,
+    /// if resuming an earlier one, belong to the abandoned continuation).
+    last_ckpt: PathBuf,
+    started: Instant,
+    /// This thread's CPU seconds at the start.
+    started_cpu: f64,
+    start_updates: u64,
+    start_steps: u64,
+}
+
+impl Session {
+    fn start(
+        run: RunDir,
+        learner: &Learner,
+        progress: bool,
+        random: crate::run_summary::ReturnCost,
+        resumed_from: Option<PathBuf>,
+    ) -> Result<Self, EppoError> {
+        let bar = progress_bar(progress, learner.cfg.total_updates, learner.updates);
+        Ok(Session {
+            metrics: MetricsWriter::open(&run.metrics_path())?,
+            run,
+            recent: crate::run_summary::RecentRounds::new(50),
+            random,
+            log_lines: progress && bar.is_hidden(),
+            bar,
+            last_log_line: Instant::now(),
+            last_ckpt: resumed_from.unwrap_or_default(),
+            started: Instant::now(),
+            started_cpu: thread_cpu_seconds(),
+            start_updates: learner.updates,
+            start_steps: learner.env_steps,
+        })
+    }
+
+    /// A NaN update names the last good checkpoint (never one of NaN weights).
+    fn non_finite(&self, e: EppoError) -> EppoError {
+        match e {
+            EppoError::NonFinite { update, what, .. } => EppoError::NonFinite {
+                update,
+                what,
+                checkpoint: (!self.last_ckpt.as_os_str().is_empty())
+                    .then(|| self.last_ckpt.clone()),
+            },
+            other => other,
+        }
+    }
+
+    /// Progress, and the checkpoint every `checkpoint_every` updates.
+    fn after_update(&mut self, learner: &mut Learner) -> Result<(), EppoError> {
+        self.bar.set_position(learner.updates);
+        if learner.updates.is_multiple_of(learner.cfg.checkpoint_every) {
+            let clock = Instant::now();
+            self.last_ckpt = learner.save_checkpoint(&self.run)?;
+            learner.times.logging += clock.elapsed().as_secs_f64();
+        }
+        Ok(())
+    }
+
+    /// One round's metrics record and progress line; `actor`: the
+    /// overlapped actor's phase times and CPU seconds.
+    fn log_round(
+        &mut self,
+        learner: &mut Learner,
+        round: &RoundStats,
+        stats: &[UpdateStats],
+        actor: Option<(&PhaseTimes, f64)>,
+    ) -> Result<(), EppoError> {
+        let clock = Instant::now();
+        let secs = self.started.elapsed().as_secs_f64().max(1e-9);
+        let ups = (learner.updates - self.start_updates) as f64 / secs;
+        let sps = (learner.env_steps - self.start_steps) as f64 / secs;
+        let mut record = round_record(learner, round, stats, ups, sps);
+        if let Some(map) = record.as_object_mut() {
+            learner.times.record("", map);
+            let cpu = (thread_cpu_seconds() - self.started_cpu) / secs;
+            map.insert("charts/cpu_learner".into(), cpu.into());
+            if let Some((times, actor_cpu)) = actor {
+                times.record("actor/", map);
+                map.insert("charts/cpu_actor".into(), (actor_cpu / secs).into());
+            }
+        }
+        self.metrics.write(&record)?;
+        self.recent.push(
             round.mean_return,
             round.mean_cost,
             round.first_return,
@@ -377,40 +511,48 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
         );
         let line = format!(
             "{}  lambda {:.3}  {ups:.2} upd/s",
-            recent.progress_line(random),
+            self.recent.progress_line(self.random),
             learner.multiplier.lambda
         );
-        if log_lines && last_log_line.elapsed().as_secs() >= 30 {
+        if self.log_lines && self.last_log_line.elapsed().as_secs() >= 30 {
             eprintln!(
                 "update {}/{}  env steps {}  {line}",
-                learner.updates, cfg.total_updates, learner.env_steps
+                learner.updates, learner.cfg.total_updates, learner.env_steps
             );
-            last_log_line = Instant::now();
+            self.last_log_line = Instant::now();
         }
-        bar.set_message(line);
+        self.bar.set_message(line);
+        // Logging's own time lands in the next record.
+        learner.times.logging += clock.elapsed().as_secs_f64();
+        Ok(())
+    }
+
+    /// The final checkpoint (unless the last update wrote one) and the report;
+    /// after a stop request, the "interrupted" error naming it.
+    fn finish(mut self, learner: &Learner) -> Result<PretrainReport, EppoError> {
+        if !self
+            .last_ckpt
+            .ends_with(format!("step_{}", learner.updates))
+        {
+            self.last_ckpt = learner.save_checkpoint(&self.run)?;
+        }
         if crate::stop::requested() {
-            if !last_ckpt.ends_with(format!("step_{}", learner.updates)) {
-                last_ckpt = learner.save_checkpoint(&run)?;
-            }
-            bar.abandon();
+            self.bar.abandon();
             return Err(EppoError::Interrupted {
-                checkpoint: last_ckpt,
+                checkpoint: self.last_ckpt,
                 updates: learner.updates,
             });
         }
+        self.bar.finish();
+        Ok(PretrainReport {
+            run_dir: self.run.path.clone(),
+            last_checkpoint: self.last_ckpt,
+            updates: learner.updates,
+            env_steps: learner.env_steps,
+            lambda: learner.multiplier.lambda,
+            random: self.random,
+        })
     }
-    if !last_ckpt.ends_with(format!("step_{}", learner.updates)) {
-        last_ckpt = learner.save_checkpoint(&run)?;
-    }
-    bar.finish();
-    Ok(PretrainReport {
-        run_dir: run.path.clone(),
-        last_checkpoint: last_ckpt,
-        updates: learner.updates,
-        env_steps: learner.env_steps,
-        lambda: learner.multiplier.lambda,
-        random,
-    })
 }
 
 /// The progress bar over `total_updates` (hidden without `progress`).

@@ -1165,3 +1165,157 @@ fn pretrain_end_to_end_checkpoints_resumes_and_loads() {
     );
     std::fs::remove_dir_all(&out).unwrap();
 }
+
+/// An overlapped run's metrics and final weights, less what depends on the
+/// machine's speed (rates, phase times, CPU shares).
+fn overlapped_run(seed: u64, out: &std::path::Path) -> (Vec<serde_json::Value>, Vec<u8>) {
+    let mut cfg = tiny();
+    cfg.seed = seed;
+    cfg.overlap = true;
+    cfg.total_updates = 8;
+    let report = train(&PretrainOptions {
+        env: EnvName::DarkRoom,
+        cfg,
+        out: out.to_path_buf(),
+        resume: None,
+        progress: false,
+    })
+    .unwrap();
+    assert_eq!(report.updates, 8);
+    let records = std::fs::read_to_string(report.run_dir.join("metrics.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| {
+            let mut v: serde_json::Value = serde_json::from_str(l).unwrap();
+            v.as_object_mut().unwrap().retain(|k, _| {
+                !(k.starts_with("time/") || k.starts_with("charts/cpu") || k.ends_with("_per_s"))
+            });
+            v
+        })
+        .collect();
+    let weights = std::fs::read(report.last_checkpoint.join("model.safetensors")).unwrap();
+    (records, weights)
+}
+
+#[test]
+fn the_overlapped_loop_is_deterministic_and_keeps_the_replay_ratio() {
+    tch::set_num_threads(1);
+    let out = std::env::temp_dir().join(format!("icrl-eppo-overlap-{}", std::process::id()));
+    let (a, wa) = overlapped_run(3, &out);
+    let (b, wb) = overlapped_run(3, &out);
+    assert_eq!(a, b, "same seed, same metrics, whichever thread was faster");
+    assert!(wa == wb, "same seed, same weights");
+    let (c, _) = overlapped_run(4, &out);
+    assert_ne!(a, c);
+    // updates_per_round = 2 after every round (learning_starts = 0): the
+    // ratio of the synchronous loop, one record per round.
+    let updates: Vec<u64> = a.iter().map(|r| r["updates"].as_u64().unwrap()).collect();
+    assert_eq!(updates, vec![2, 4, 6, 8]);
+    let steps: Vec<u64> = a.iter().map(|r| r["env_steps"].as_u64().unwrap()).collect();
+    assert!(steps.windows(2).all(|w| w[1] > w[0]), "{steps:?}");
+    std::fs::remove_dir_all(&out).unwrap();
+}
+
+#[test]
+fn the_replay_ratio_sets_updates_per_environment_step() {
+    let (mut learner, mut venv) = tiny_learner(0);
+    learner.cfg.replay_ratio = Some(0.1);
+    learner.cfg.total_updates = 1000;
+    learner.cfg.learning_starts = 5;
+    for _ in 0..3 {
+        learner.collect(&mut venv).unwrap();
+        let owed = learner.updates_owed();
+        let expected = (0.1 * (learner.env_steps - 5) as f64).floor() as u64 - learner.updates;
+        assert_eq!(owed, expected);
+        for _ in 0..owed {
+            learner.update().unwrap();
+        }
+    }
+    assert_eq!(
+        learner.updates,
+        (0.1 * (learner.env_steps - 5) as f64).floor() as u64
+    );
+    // Without it: updates_per_round, none before learning_starts, none past the end.
+    learner.cfg.replay_ratio = None;
+    assert_eq!(learner.updates_owed(), 2);
+    learner.cfg.learning_starts = learner.env_steps + 1;
+    assert_eq!(learner.updates_owed(), 0);
+    learner.cfg.learning_starts = 0;
+    learner.cfg.total_updates = learner.updates + 1;
+    assert_eq!(learner.updates_owed(), 1);
+    let mut bad = tiny();
+    bad.replay_ratio = Some(0.0);
+    assert!(
+        bad.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("replay_ratio = 0")
+    );
+    let mut bad = tiny();
+    bad.learner_threads = -1;
+    assert!(
+        bad.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("learner_threads = -1")
+    );
+}
+
+/// A stop while both sides run: the learner stops after its current update,
+/// the actor abandons its round, the checkpoint is written, and the run
+/// resumes (overlapped) to its end without a repeated record.
+#[test]
+fn an_overlapped_stop_checkpoints_and_resumes() {
+    tch::set_num_threads(1);
+    let out = std::env::temp_dir().join(format!("icrl-eppo-overlap-stop-{}", std::process::id()));
+    let cfg = EppoConfig {
+        overlap: true,
+        total_updates: 6,
+        checkpoint_every: 100,
+        ..tiny()
+    };
+    crate::stop::request();
+    let e = train(&PretrainOptions {
+        env: EnvName::DarkRoom,
+        cfg: cfg.clone(),
+        out: out.clone(),
+        resume: None,
+        progress: false,
+    })
+    .unwrap_err();
+    crate::stop::clear();
+    let EppoError::Interrupted {
+        checkpoint,
+        updates,
+    } = e
+    else {
+        panic!("{e}");
+    };
+    assert_eq!(updates, 1, "stopped after the first update");
+    assert!(checkpoint.ends_with("step_1"), "{}", checkpoint.display());
+    let run_dir = checkpoint.parent().unwrap().parent().unwrap().to_path_buf();
+    let done = train(&PretrainOptions {
+        env: EnvName::DarkRoom,
+        cfg,
+        out: out.clone(),
+        resume: Some(run_dir.clone()),
+        progress: false,
+    })
+    .unwrap();
+    assert_eq!(done.updates, 6);
+    let updates: Vec<u64> = std::fs::read_to_string(run_dir.join("metrics.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| {
+            serde_json::from_str::<serde_json::Value>(l).unwrap()["updates"]
+                .as_u64()
+                .unwrap()
+        })
+        .collect();
+    assert_eq!(
+        updates,
+        vec![1, 3, 5, 6],
+        "one record per round, none repeated"
+    );
+    std::fs::remove_dir_all(&out).unwrap();
+}
