@@ -154,7 +154,9 @@ fn start_long_run(out: &Path) -> (Child, PathBuf) {
         "env_threads=1",
     ];
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_icrl"));
-    cmd.args(["pretrain", "--env", "darkroom", "--out"])
+    // The `icrl` form of the resume line is checked: not started by xtask.
+    cmd.env_remove("ICRL_VIA_XTASK")
+        .args(["pretrain", "--env", "darkroom", "--out"])
         .arg(out);
     for s in sets {
         cmd.args(["--set", s]);

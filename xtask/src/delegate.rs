@@ -74,7 +74,9 @@ pub fn icrl(subcommand: &str, args: &[String]) -> Result<ExitCode> {
         "--",
         subcommand,
     ];
-    cargo(&leading, args)
+    // icrl prints its resume line as a `cargo xtask` command when set. Only
+    // here: the tests that `cargo xtask test` runs check the `icrl` form.
+    cargo_with_env(&leading, args, &[("ICRL_VIA_XTASK", "1")])
 }
 
 /// `cargo xtask render`: safety-envs' `render` binary in release.
@@ -146,13 +148,17 @@ fn not_built_yet(command: &str, source: &str) -> Result<ExitCode> {
 /// `args`, and returns its exit code. It runs in the caller's folder, so
 /// relative paths in `args` (`--out`, `--scene`) mean what the user typed.
 fn cargo(leading: &[&str], args: &[String]) -> Result<ExitCode> {
+    cargo_with_env(leading, args, &[])
+}
+
+/// [`cargo`] with `vars` added to the child's environment.
+fn cargo_with_env(leading: &[&str], args: &[String], vars: &[(&str, &str)]) -> Result<ExitCode> {
     let cargo = env::var_os("CARGO").unwrap_or_else(|| "cargo".into());
     println!("xtask: cargo {}", shell_words(leading, args));
     let status = Command::new(&cargo)
         .args(leading)
         .args(args)
-        // icrl prints its resume line as a `cargo xtask` command when set.
-        .env("ICRL_VIA_XTASK", "1")
+        .envs(vars.iter().copied())
         .status()
         .with_context(|| format!("could not start {}", Path::new(&cargo).display()))?;
     Ok(exit_code(status))
