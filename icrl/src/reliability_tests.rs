@@ -346,50 +346,12 @@ fn ad_non_finite_loss_stops_naming_the_last_good_checkpoint() {
 #[test]
 fn a_stop_request_checkpoints_and_the_run_resumes() {
     let root = tmp("stop");
-    crate::stop::request();
-    let e = eppo::train(&PretrainOptions {
-        env: EnvName::DarkRoom,
-        cfg: eppo::EppoConfig {
-            checkpoint_every: 100,
-            ..tiny_eppo(4)
-        },
-        out: root.clone(),
-        resume: None,
-        progress: false,
-    })
-    .unwrap_err();
-    crate::stop::clear();
-    let EppoError::Interrupted {
-        checkpoint,
-        updates,
-    } = e
-    else {
-        panic!("{e}");
+    let cfg = eppo::EppoConfig {
+        checkpoint_every: 100,
+        ..tiny_eppo(4)
     };
-    assert_eq!(updates, 1, "stopped after the first update");
-    assert!(checkpoint.ends_with("step_1"), "{}", checkpoint.display());
-    let run_dir = checkpoint.parent().unwrap().parent().unwrap().to_path_buf();
-    let done = eppo::train(&PretrainOptions {
-        env: EnvName::DarkRoom,
-        cfg: eppo::EppoConfig {
-            checkpoint_every: 100,
-            ..tiny_eppo(4)
-        },
-        out: root.clone(),
-        resume: Some(run_dir.clone()),
-        progress: false,
-    })
-    .unwrap();
-    assert_eq!(done.updates, 4);
-    let updates: Vec<u64> = fs::read_to_string(run_dir.join("metrics.jsonl"))
-        .unwrap()
-        .lines()
-        .map(|l| {
-            serde_json::from_str::<serde_json::Value>(l).unwrap()["updates"]
-                .as_u64()
-                .unwrap()
-        })
-        .collect();
+    let (done, updates) = eppo::tests::stop_after_one_then_resume(&cfg, &root);
+    assert_eq!(done, 4);
     assert_eq!(
         updates,
         vec![1, 3, 4],

@@ -1,6 +1,8 @@
 //! EPPO's tests: collection, the losses and their masks, acting through
 //! the cache, determinism, and a run end to end (pretrain, resume, load).
 
+use std::path::{Path, PathBuf};
+
 use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use tch::{Device, Kind, Tensor};
@@ -1261,6 +1263,43 @@ fn the_replay_ratio_sets_updates_per_environment_step() {
     );
 }
 
+/// Trains `cfg` into `out` with a stop requested from the start: the run must
+/// stop after update 1 with checkpoint `step_1`. Then resumes that run to its
+/// end; returns the updates done and the `updates` of every metrics record.
+pub(crate) fn stop_after_one_then_resume(cfg: &EppoConfig, out: &Path) -> (u64, Vec<u64>) {
+    let options = |resume: Option<PathBuf>| PretrainOptions {
+        env: EnvName::DarkRoom,
+        cfg: cfg.clone(),
+        out: out.to_path_buf(),
+        resume,
+        progress: false,
+    };
+    crate::stop::request();
+    let e = train(&options(None)).unwrap_err();
+    crate::stop::clear();
+    let EppoError::Interrupted {
+        checkpoint,
+        updates,
+    } = e
+    else {
+        panic!("{e}");
+    };
+    assert_eq!(updates, 1, "stopped after the first update");
+    assert!(checkpoint.ends_with("step_1"), "{}", checkpoint.display());
+    let run_dir = checkpoint.parent().unwrap().parent().unwrap().to_path_buf();
+    let done = train(&options(Some(run_dir.clone()))).unwrap();
+    let recorded = std::fs::read_to_string(run_dir.join("metrics.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| {
+            serde_json::from_str::<serde_json::Value>(l).unwrap()["updates"]
+                .as_u64()
+                .unwrap()
+        })
+        .collect();
+    (done.updates, recorded)
+}
+
 /// A stop while both sides run: the learner stops after its current update,
 /// the actor abandons its round, the checkpoint is written, and the run
 /// resumes (overlapped) to its end without a repeated record.
@@ -1274,44 +1313,8 @@ fn an_overlapped_stop_checkpoints_and_resumes() {
         checkpoint_every: 100,
         ..tiny()
     };
-    crate::stop::request();
-    let e = train(&PretrainOptions {
-        env: EnvName::DarkRoom,
-        cfg: cfg.clone(),
-        out: out.clone(),
-        resume: None,
-        progress: false,
-    })
-    .unwrap_err();
-    crate::stop::clear();
-    let EppoError::Interrupted {
-        checkpoint,
-        updates,
-    } = e
-    else {
-        panic!("{e}");
-    };
-    assert_eq!(updates, 1, "stopped after the first update");
-    assert!(checkpoint.ends_with("step_1"), "{}", checkpoint.display());
-    let run_dir = checkpoint.parent().unwrap().parent().unwrap().to_path_buf();
-    let done = train(&PretrainOptions {
-        env: EnvName::DarkRoom,
-        cfg,
-        out: out.clone(),
-        resume: Some(run_dir.clone()),
-        progress: false,
-    })
-    .unwrap();
-    assert_eq!(done.updates, 6);
-    let updates: Vec<u64> = std::fs::read_to_string(run_dir.join("metrics.jsonl"))
-        .unwrap()
-        .lines()
-        .map(|l| {
-            serde_json::from_str::<serde_json::Value>(l).unwrap()["updates"]
-                .as_u64()
-                .unwrap()
-        })
-        .collect();
+    let (done, updates) = stop_after_one_then_resume(&cfg, &out);
+    assert_eq!(done, 6);
     assert_eq!(
         updates,
         vec![1, 3, 5, 6],
