@@ -505,16 +505,7 @@ fn search_rates_count_discovery_and_revisits() {
 fn critic_losses_fall_on_a_fixed_batch() {
     let (mut learner, mut venv) = tiny_learner(1);
     learner.collect(&mut venv).unwrap();
-    let trajs: Vec<&Trajectory> = learner.replay.trajectories.iter().collect();
-    let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let batch = make_batch(
-        &trajs,
-        &learner.cfg,
-        &learner.spec,
-        0.0,
-        &mut rng,
-        Device::Cpu,
-    );
+    let batch = replay_batch(&learner);
     let mut first = None;
     let mut last = (0.0, 0.0);
     for _ in 0..300 {
@@ -619,22 +610,28 @@ fn lambda_rises_falls_and_respects_the_cap() {
     assert_eq!(t.max_violation(), 3.0);
 }
 
-/// A batch collected by a tiny SafeDarkRoom learner whose actor pays the
-/// cost penalty in `form`.
-fn penalty_probe(form: PenaltyForm) -> (Learner, Batch) {
-    let (mut learner, mut venv) = tiny_learner(2);
-    learner.cfg.penalty = form;
-    learner.collect(&mut venv).unwrap();
+/// One batch of every trajectory in `learner`'s replay (windows drawn with
+/// seed 0, no novelty bonus).
+fn replay_batch(learner: &Learner) -> Batch {
     let trajs: Vec<&Trajectory> = learner.replay.trajectories.iter().collect();
     let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let batch = make_batch(
+    make_batch(
         &trajs,
         &learner.cfg,
         &learner.spec,
         0.0,
         &mut rng,
         Device::Cpu,
-    );
+    )
+}
+
+/// A batch collected by a tiny SafeDarkRoom learner whose actor pays the
+/// cost penalty in `form`.
+fn penalty_probe(form: PenaltyForm) -> (Learner, Batch) {
+    let (mut learner, mut venv) = tiny_learner(2);
+    learner.cfg.penalty = form;
+    learner.collect(&mut venv).unwrap();
+    let batch = replay_batch(&learner);
     (learner, batch)
 }
 
