@@ -337,20 +337,11 @@ impl RunDir {
     pub fn create_named(root: &Path, base: &str) -> Result<Self, CheckpointError> {
         refuse_nesting(root)?;
         // `--out` at a file, a device or a symlink loop: say so, not EEXIST.
-        if let Ok(m) = fs::symlink_metadata(root)
-            && !root.is_dir()
-        {
-            return Err(CheckpointError::Invalid {
-                path: root.to_path_buf(),
-                problem: if m.file_type().is_symlink() {
-                    "a symbolic link that does not lead to a folder".into()
-                } else {
-                    "not a folder (a file or a device is there)".into()
-                },
-                fix: "pass a folder for --out (it is created if missing)".into(),
-            });
-        }
-        fs::create_dir_all(root).map_err(io(root))?;
+        safety_envs::output::create_folder(root).map_err(|e| CheckpointError::Invalid {
+            path: e.path,
+            problem: e.problem,
+            fix: "it is the --out folder".into(),
+        })?;
         for n in 1..10_000u32 {
             let name = if n == 1 {
                 base.to_string()
@@ -572,6 +563,99 @@ impl RunDir {
             }
         }
         Ok(best.map(|(_, p)| p))
+    }
+
+    /// Refuses to continue a run in place from `checkpoint` when the run has
+    /// a later one: its metrics and checkpoints would then hold two
+    /// histories. A branch from an earlier checkpoint is a new run
+    /// (`pretrain --fork`, [`RunDir::fork`]).
+    pub fn check_latest(&self, checkpoint: &Path) -> Result<(), CheckpointError> {
+        match self.latest_checkpoint()? {
+            Some(latest) if latest != checkpoint => Err(CheckpointError::Invalid {
+                path: checkpoint.to_path_buf(),
+                problem: format!(
+                    "the run's latest checkpoint is {}: continuing this run from an earlier one \
+                     would mix two histories in one run folder",
+                    latest.display()
+                ),
+                fix: format!(
+                    "resume {} to continue from the latest, or branch a new run from this \
+                     checkpoint with --fork DIR (it may change settings with --set)",
+                    self.path.display()
+                ),
+            }),
+            _ => Ok(()),
+        }
+    }
+
+    /// Branches a new run under `out` from `checkpoint` of this run: a new
+    /// run folder (named as [`RunDir::create`] names one, for `seed`) holding
+    /// `config_toml`, the checkpoint (hard links where the file system
+    /// allows: checkpoint files are never rewritten in place), the metrics
+    /// up to the checkpoint's update (`metrics_key`), this run's `spec.json`
+    /// if it has one, and `forked_from.txt` naming the origin. Returns the
+    /// new run and its checkpoint folder; resuming that continues the branch.
+    pub fn fork(
+        &self,
+        checkpoint: &Path,
+        out: &Path,
+        seed: u64,
+        config_toml: &str,
+        metrics_key: &str,
+    ) -> Result<(Self, PathBuf), CheckpointError> {
+        let manifest = read_manifest(checkpoint)?;
+        let base = self
+            .path
+            .file_name()
+            .map(|n| n.to_string_lossy().into_owned())
+            .and_then(|n| {
+                let mut parts = n.splitn(4, "__");
+                Some(format!("{}__{}", parts.next()?, parts.next()?))
+            })
+            .unwrap_or_else(|| format!("{}__{}", manifest.env, manifest.method));
+        let new = Self::create_named(out, &format!("{base}__{seed}__{}", utc_stamp()))?;
+        let made = (|| {
+            let step = new
+                .path
+                .join("checkpoints")
+                .join(format!("step_{}", manifest.updates));
+            fs::create_dir(&step).map_err(io(&step))?;
+            // Manifest names are plain file names; anything else is not a
+            // checkpoint's file.
+            let names = manifest.files.keys().map(String::as_str).chain([MANIFEST]);
+            for name in names.filter(|n| Path::new(n).components().count() == 1) {
+                let (from, to) = (checkpoint.join(name), step.join(name));
+                if fs::hard_link(&from, &to).is_err() {
+                    fs::copy(&from, &to).map_err(io(&from))?;
+                }
+            }
+            for name in ["spec.json", "metrics.jsonl"] {
+                let from = self.path.join(name);
+                if from.is_file() {
+                    fs::copy(&from, new.path.join(name)).map_err(io(&from))?;
+                }
+            }
+            truncate_metrics(&new.metrics_path(), metrics_key, manifest.updates)?;
+            new.write_config(config_toml)?;
+            let note = new.path.join("forked_from.txt");
+            fs::write(
+                &note,
+                format!(
+                    "{}
+",
+                    checkpoint.display()
+                ),
+            )
+            .map_err(io(&note))?;
+            Ok(step)
+        })();
+        match made {
+            Ok(step) => Ok((new, step)),
+            Err(e) => {
+                let _ = fs::remove_dir_all(&new.path);
+                Err(e)
+            }
+        }
     }
 
     /// Makes and removes the deepest path a checkpoint at update `last` will

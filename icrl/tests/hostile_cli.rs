@@ -368,6 +368,102 @@ fn a_run_held_by_another_process_is_refused_with_its_pid() {
 }
 
 #[test]
+fn an_older_checkpoint_is_forked_into_a_new_run_not_resumed_in_place() {
+    let dir = tmp("fork");
+    let (run, _) = tiny_eppo_run(&dir.join("runs"));
+    let r = s(&run);
+    let pretrain = |extra: &[&str]| {
+        let mut args = vec!["pretrain", "--env", "darkroom"];
+        args.extend(extra);
+        icrl(&args)
+    };
+    succeeded(&pretrain(&["--resume", &r, "--set", "total_updates=4"]));
+    let step2 = s(&run.join("checkpoints/step_2"));
+    let metrics = std::fs::read_to_string(run.join("metrics.jsonl")).unwrap();
+    // In place, an older checkpoint would mix two histories in one run.
+    refused(
+        &pretrain(&["--resume", &step2, "--set", "total_updates=6"]),
+        "the run's latest checkpoint is",
+    );
+    refused(
+        &pretrain(&["--resume", &step2, "--set", "total_updates=6"]),
+        "--fork DIR",
+    );
+    // A fork may not change the network the weights were made for.
+    let forks = dir.join("forks");
+    let f = s(&forks);
+    refused(
+        &pretrain(&[
+            "--resume",
+            &step2,
+            "--fork",
+            &f,
+            "--set",
+            "model.d_model=32",
+        ]),
+        "model.d_model: 16 -> 32",
+    );
+    assert!(!forks.exists() || std::fs::read_dir(&forks).unwrap().next().is_none());
+    // Any other setting: a new run from step_2, the original untouched.
+    let o = pretrain(&[
+        "--resume",
+        &step2,
+        "--fork",
+        &f,
+        "--set",
+        "lambda_max=0.6",
+        "--set",
+        "total_updates=4",
+    ]);
+    succeeded(&o);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(
+        err.contains("forked ") && err.contains("lambda_max: "),
+        "{err}"
+    );
+    let branch = std::fs::read_dir(&forks)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    let config = std::fs::read_to_string(branch.join("config.toml")).unwrap();
+    assert!(config.contains("lambda_max = 0.6"), "{config}");
+    assert!(branch.join("checkpoints/step_4").is_dir());
+    assert_eq!(
+        std::fs::read_to_string(branch.join("forked_from.txt"))
+            .unwrap()
+            .trim(),
+        step2
+    );
+    // The branch's metrics: the origin's up to update 2, then its own.
+    let updates: Vec<u64> = std::fs::read_to_string(branch.join("metrics.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| {
+            serde_json::from_str::<serde_json::Value>(l).unwrap()["updates"]
+                .as_u64()
+                .unwrap()
+        })
+        .collect();
+    assert!(updates.windows(2).all(|w| w[0] <= w[1]), "{updates:?}");
+    assert_eq!(updates.last(), Some(&4), "{updates:?}");
+    assert_eq!(
+        std::fs::read_to_string(run.join("metrics.jsonl")).unwrap(),
+        metrics
+    );
+    assert!(run.join("checkpoints/step_4").is_dir() && run.join("checkpoints/step_2").is_dir());
+    // The branch resumes as a run of its own.
+    succeeded(&pretrain(&[
+        "--resume",
+        &s(&branch),
+        "--set",
+        "total_updates=6",
+    ]));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
 fn the_printed_eval_command_works_as_printed() {
     // A path with a space: the command must be quoted to survive pasting.
     let dir = tmp("printed");

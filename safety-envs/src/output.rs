@@ -119,7 +119,59 @@ pub fn check_output(path: &Path, existing: Existing) -> Result<(), OutputError> 
         {
             check_folder(path)
         }
+        Err(e) if is_loop(&e) => err(format!(
+            "a folder on its path is a symbolic link loop (links that lead back to themselves, {e}): \
+             choose another path"
+        )),
         Err(e) => err(format!("cannot use this path: {e}")),
+    }
+}
+
+/// ELOOP (Linux): symbolic links that lead back to themselves.
+fn is_loop(e: &std::io::Error) -> bool {
+    const ELOOP: i32 = 40;
+    e.raw_os_error() == Some(ELOOP)
+}
+
+/// Makes the output folder `dir` (and its parents) unless it is one
+/// already; a file, device, dangling link or symbolic link loop where the
+/// folder should be is named, not reported as the OS's `File exists`.
+pub fn create_folder(dir: &Path) -> Result<(), OutputError> {
+    if dir.is_dir() {
+        return Ok(());
+    }
+    let err = |m: String| Err(OutputError::new(dir, m));
+    if let Ok(meta) = fs::symlink_metadata(dir) {
+        return match fs::metadata(dir) {
+            Err(e) if is_loop(&e) => err(
+                "a symbolic link loop (links that lead back to themselves), not a folder: \
+                 choose another folder"
+                    .into(),
+            ),
+            Err(_) => err("a symbolic link to nothing, not a folder: choose another folder".into()),
+            Ok(target) => err(format!(
+                "{}, not a folder: choose another folder (it is created if missing)",
+                if meta.file_type().is_symlink() {
+                    format!("a symbolic link to {}", kind(&target.file_type()))
+                } else {
+                    kind(&meta.file_type()).to_string()
+                }
+            )),
+        };
+    }
+    match fs::create_dir_all(dir) {
+        Ok(()) => Ok(()),
+        Err(e) if is_loop(&e) => err(format!(
+            "cannot create it: a folder on its path is a symbolic link loop ({e}): choose another folder"
+        )),
+        // A file where a parent folder should be: name which one.
+        Err(e) if e.kind() == std::io::ErrorKind::NotADirectory => {
+            match check_folder(&dir.join("x")) {
+                Err(named) => err(named.problem),
+                Ok(()) => err(format!("cannot create it: {e}")),
+            }
+        }
+        Err(e) => err(format!("cannot create it: {e}")),
     }
 }
 
@@ -421,6 +473,29 @@ mod tests {
             .collect();
         assert_eq!(names.len(), 3, "{names:?}");
         fs::remove_dir_all(&d).unwrap();
+    }
+
+    #[test]
+    fn output_folders_that_cannot_be_made_are_named() {
+        let d = dir("folders");
+        let problem = |p: &Path| create_folder(p).unwrap_err().problem;
+        std::os::unix::fs::symlink(d.join("loop"), d.join("loop")).unwrap();
+        assert!(problem(&d.join("loop")).contains("a symbolic link loop"));
+        assert!(
+            problem(&d.join("loop/sub")).contains("a folder on its path is a symbolic link loop")
+        );
+        std::os::unix::fs::symlink(d.join("nothing"), d.join("dangling")).unwrap();
+        assert!(problem(&d.join("dangling")).contains("a symbolic link to nothing"));
+        fs::write(d.join("afile"), b"x").unwrap();
+        assert!(problem(&d.join("afile")).starts_with("a file, not a folder"));
+        let p = problem(&d.join("afile/sub/deeper"));
+        assert!(p.contains("afile is a file, not a folder"), "{p}");
+        assert!(problem(Path::new("/dev/null")).starts_with("a device, not a folder"));
+        // A folder is made, with its parents, and an existing one is kept.
+        create_folder(&d.join("a/b")).unwrap();
+        create_folder(&d.join("a/b")).unwrap();
+        assert!(d.join("a/b").is_dir());
+        let _ = fs::remove_dir_all(&d);
     }
 
     #[test]

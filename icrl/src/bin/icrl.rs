@@ -331,6 +331,16 @@ struct PretrainArgs {
     /// (`icrl sweep`) continues its own run instead of starting again.
     #[arg(long, conflicts_with = "resume")]
     resume_in_out: bool,
+    /// Branch a new run in this folder from the --resume checkpoint (any step_N, not only the
+    /// latest), with --set changing any setting but the network's shape; the original run is
+    /// left as it is.
+    #[arg(
+        long,
+        value_name = "DIR",
+        requires = "resume",
+        conflicts_with = "resume_in_out"
+    )]
+    fork: Option<PathBuf>,
 }
 
 /// `pretrain --method ad`: safe supervised pretraining on a history file
@@ -380,6 +390,19 @@ fn pretrain(mut args: PretrainArgs) -> anyhow::Result<()> {
                 return Ok(());
             }
         }
+    }
+    if let (Some(root), Some(from)) = (&args.fork, &args.resume) {
+        let mut sets = std::mem::take(&mut args.set);
+        if let Some(seed) = args.seed.take() {
+            sets.push(format!("seed={seed}"));
+        }
+        if args.method == "eppo"
+            && let Some(device) = args.device.take()
+        {
+            sets.push(format!("device=\"{device}\""));
+        }
+        let new = icrl::cli::pretrain::fork(&args.env, &args.method, from, &sets, root)?;
+        args.resume = Some(new);
     }
     if args.method == "ad" {
         return pretrain_ad(args);

@@ -152,34 +152,24 @@ pub const EPPO_RESUME_MAY_CHANGE: [&str; 8] = [
 /// The resume rule (EPPO; AD has the same in `ad::check_resumable`): the
 /// changes `--set`/`--seed` make to the run's `config.toml` are printed when
 /// allowed ([`EPPO_RESUME_MAY_CHANGE`]) and refused otherwise; a
-/// `total_updates` that does not extend the run is refused; resuming an
-/// older checkpoint than the run's latest is announced.
+/// `total_updates` that does not extend the run is refused, and so is
+/// continuing a run in place from an older checkpoint than its latest
+/// (`--fork` branches a new run instead).
 fn check_eppo_resume(path: &Path, saved: &toml::Table, now: &toml::Table) -> Result<(), EppoError> {
     let (run, ckpt) = RunDir::resolve_resume(path)?;
-    let mut old = Vec::new();
-    let mut new = Vec::new();
-    flatten("", saved, &mut old);
-    flatten("", now, &mut new);
-    let mut allowed = Vec::new();
-    let mut refused = Vec::new();
-    for (key, after) in &new {
-        let before = old.iter().find(|(k, _)| k == key).map(|(_, v)| v.as_str());
-        if before == Some(after.as_str()) {
-            continue;
-        }
-        let change = format!("{key}: {} -> {after}", before.unwrap_or("(unset)"));
-        if EPPO_RESUME_MAY_CHANGE.contains(&key.as_str()) {
-            allowed.push(change);
-        } else {
-            refused.push(change);
-        }
-    }
+    let (allowed, refused): (Vec<_>, Vec<_>) = setting_changes(saved, now)
+        .into_iter()
+        .partition(|(key, _)| EPPO_RESUME_MAY_CHANGE.contains(&key.as_str()));
     if !refused.is_empty() {
         return Err(EppoError::Config(format!(
             "cannot resume {}: these settings differ from its config.toml: {}; only {} may change \
-             (start a new run to train with other settings)",
+             (branch a new run with other settings with --fork DIR)",
             run.path.display(),
-            refused.join(", "),
+            refused
+                .into_iter()
+                .map(|(_, c)| c)
+                .collect::<Vec<_>>()
+                .join(", "),
             EPPO_RESUME_MAY_CHANGE.join(", ")
         )));
     }
@@ -199,21 +189,108 @@ fn check_eppo_resume(path: &Path, saved: &toml::Table, now: &toml::Table) -> Res
             done + 1
         )));
     }
-    if let Ok(Some(latest)) = run.latest_checkpoint()
-        && latest != ckpt
-    {
-        eprintln!(
-            "warning: resuming {} although the run's latest checkpoint is {}: the run continues \
-             from the older one (a fork); the later checkpoints stay until it overwrites them, \
-             so resume the run folder itself to continue from the latest",
-            ckpt.display(),
-            latest.display()
-        );
-    }
-    for change in &allowed {
+    run.check_latest(&ckpt)?;
+    for (_, change) in &allowed {
         eprintln!("resuming {} with {change}", run.path.display());
     }
     Ok(())
+}
+
+/// Settings a fork keeps: the network's shape, which the checkpoint's
+/// weights must fit (loading would refuse them later; refused here, before
+/// anything is written).
+const FORK_KEEPS: [&str; 4] = ["model.", "encoder_hidden", "head_hidden", "n_critics"];
+
+/// `pretrain --resume CKPT --fork OUT`: branches a new run under `out` from
+/// CKPT (a run folder: its latest checkpoint) with the `sets` applied to its
+/// configuration (any setting but the network's shape), leaving the original
+/// run as it is; the branch starts with the weights, optimizer, multiplier
+/// and counters of CKPT and its metrics up to there. Returns the new run
+/// folder, which the caller resumes.
+pub fn fork(
+    env: &str,
+    method: &str,
+    from: &Path,
+    sets: &[String],
+    out: &Path,
+) -> Result<PathBuf, CheckpointError> {
+    let (run, ckpt) = RunDir::resolve_resume(from)?;
+    RunDir::check_resume_flags(&ckpt, method, env)?;
+    // EPPO checkpoints hold a copy of the config (a lost config.toml).
+    let path = [run.config_path(), ckpt.join("config.toml")]
+        .into_iter()
+        .find(|p| p.is_file())
+        .unwrap_or_else(|| run.config_path());
+    let invalid = |problem: String| CheckpointError::Invalid {
+        path: path.clone(),
+        problem,
+        fix: "restore the run's config.toml from a copy".into(),
+    };
+    let saved = fs::read_to_string(&path)
+        .map_err(|e| invalid(e.to_string()))?
+        .parse::<toml::Table>()
+        .map_err(|e| invalid(e.to_string()))?;
+    let mut table = saved.clone();
+    crate::presets::apply_overrides(&mut table, sets).map_err(|e| CheckpointError::Invalid {
+        path: path.clone(),
+        problem: e.to_string(),
+        fix: "correct the --set".into(),
+    })?;
+    let changes = setting_changes(&saved, &table);
+    let kept: Vec<&str> = changes
+        .iter()
+        .filter(|(key, _)| FORK_KEEPS.iter().any(|k| key.starts_with(k)))
+        .map(|(_, c)| c.as_str())
+        .collect();
+    if !kept.is_empty() {
+        return Err(CheckpointError::Invalid {
+            path: ckpt,
+            problem: format!(
+                "a fork starts from this checkpoint's weights, which do not fit another network \
+                 shape: {}",
+                kept.join(", ")
+            ),
+            fix: "keep the model's settings, or start a new run".into(),
+        });
+    }
+    let seed = table
+        .get("seed")
+        .and_then(toml::Value::as_integer)
+        .and_then(|s| u64::try_from(s).ok())
+        .ok_or_else(|| invalid("no seed (a whole number of 0 or more)".into()))?;
+    let text = toml::to_string(&table).map_err(|e| invalid(e.to_string()))?;
+    let key = if method == "ad" { "update" } else { "updates" };
+    let (new, _) = run.fork(&ckpt, out, seed, &text, key)?;
+    let changes: Vec<String> = changes.into_iter().map(|(_, c)| c).collect();
+    eprintln!(
+        "forked {} into {}{}",
+        ckpt.display(),
+        new.path.display(),
+        if changes.is_empty() {
+            String::new()
+        } else {
+            format!(" with {}", changes.join(", "))
+        }
+    );
+    Ok(new.path)
+}
+
+/// `(key, "key: before -> after")` for every setting of `now` that differs
+/// from `saved` (dotted keys for nested tables).
+fn setting_changes(saved: &toml::Table, now: &toml::Table) -> Vec<(String, String)> {
+    let mut old = Vec::new();
+    let mut new = Vec::new();
+    flatten("", saved, &mut old);
+    flatten("", now, &mut new);
+    new.into_iter()
+        .filter_map(|(key, after)| {
+            let before = old.iter().find(|(k, _)| *k == key).map(|(_, v)| v.as_str());
+            (before != Some(after.as_str())).then(|| {
+                let change = format!("{key}: {} -> {after}", before.unwrap_or("(unset)"));
+                (key, change)
+            })
+        })
+        .collect()
 }
 
 /// `(dotted.key, value)` for every leaf of a TOML table.
@@ -255,6 +332,7 @@ pub fn ad(
             }
             let (run, ckpt) = RunDir::resolve_resume(path)?;
             RunDir::check_resume_flags(&ckpt, "ad", env)?;
+            run.check_latest(&ckpt)?;
             Some((run, ckpt))
         }
         None => None,

@@ -653,7 +653,7 @@ pub const CONDITIONING_RANGE: (f32, f32) = (0.0, 10_000.0);
 
 /// Checks that `dir` can be created and written to, before any long work.
 pub fn check_output_dir(dir: &Path) -> Result<(), EvalCmdError> {
-    std::fs::create_dir_all(dir).map_err(io_err(dir))?;
+    output::create_folder(dir)?;
     let probe = dir.join(format!(".icrl-write-test-{}", std::process::id()));
     std::fs::write(&probe, b"").map_err(io_err(dir))?;
     std::fs::remove_file(&probe).map_err(io_err(&probe))
@@ -864,7 +864,7 @@ pub fn replot(dirs: &[PathBuf], out: &Path, force: bool) -> Result<EvalOutputs, 
             })
             .collect()
     };
-    std::fs::create_dir_all(out).map_err(io_err(out))?;
+    output::create_folder(out)?;
     let mut outputs = EvalOutputs::default();
     let fig1 = curves(false);
     if !fig1.is_empty() {
