@@ -37,6 +37,10 @@ pub const FORMAT_VERSION: u32 = 1;
 /// Name of the manifest inside a checkpoint folder.
 pub const MANIFEST: &str = "manifest.json";
 
+/// Bytes a checkpoint holds besides its tensors (manifest, state, config), allowed for
+/// in the disk room checked before training.
+pub const CHECKPOINT_SLACK: u64 = 64 * 1024;
+
 /// A run folder or checkpoint that cannot be written or used.
 #[derive(Debug, Error)]
 pub enum CheckpointError {
@@ -51,6 +55,16 @@ pub enum CheckpointError {
         path: PathBuf,
         problem: String,
         fix: String,
+    },
+    /// A checkpoint that could not be written: nothing of it is left, and
+    /// the last good one is named.
+    #[error(
+        "{path}: writing this checkpoint failed: {problem}; nothing of it was kept. {last_good}"
+    )]
+    WriteFailed {
+        path: PathBuf,
+        problem: String,
+        last_good: String,
     },
     #[error("{path}: checkpoint is for {what} {found:?}, this run has {expected:?}; {fix}")]
     Mismatch {
@@ -674,6 +688,46 @@ impl RunDir {
         probe
     }
 
+    /// Refuses to train when the run's disk lacks room for the checkpoints
+    /// still to come: each about `checkpoint_bytes`; with `keep` kept (0:
+    /// all), `keep` + 1 are on disk at once while the newest is written, and
+    /// `future` more will be written before the run ends.
+    pub fn check_room(
+        &self,
+        checkpoint_bytes: u64,
+        keep: usize,
+        future: u64,
+    ) -> Result<(), CheckpointError> {
+        let dir = self.path.join("checkpoints");
+        let existing = fs::read_dir(&dir)
+            .map_err(io(&dir))?
+            .filter_map(Result::ok)
+            .filter(|e| e.file_name().to_string_lossy().starts_with("step_"))
+            .count() as u64;
+        let at_once = if keep == 0 {
+            existing + future
+        } else {
+            keep as u64 + 1
+        };
+        let more = at_once.saturating_sub(existing).clamp(1, future.max(1));
+        let need = more.saturating_mul(checkpoint_bytes);
+        safety_envs::output::check_room(
+            &dir,
+            need,
+            &format!(
+                "{more} more checkpoint{} of about {} each (keep_checkpoints = {keep})",
+                if more == 1 { "" } else { "s" },
+                safety_envs::output::human_bytes(checkpoint_bytes as f64)
+            ),
+            "free space on it, lower keep_checkpoints, or pass another --out",
+        )
+        .map_err(|e| CheckpointError::Invalid {
+            path: e.path,
+            problem: e.problem,
+            fix: "nothing was trained".into(),
+        })
+    }
+
     /// Writes `checkpoints/step_{updates}` atomically: `write` fills a
     /// temporary folder, the manifest (with every file's size) is added, and
     /// the folder is renamed into place. Keeps the newest `keep` checkpoints.
@@ -695,9 +749,48 @@ impl RunDir {
         if tmp.exists() {
             fs::remove_dir_all(&tmp).map_err(io(&tmp))?;
         }
+        // A failed write leaves nothing behind (a full disk is not filled
+        // further by a partial `.tmp_step_N`) and names the last good one.
+        let failed = |e: CheckpointError| {
+            let _ = fs::remove_dir_all(&tmp);
+            CheckpointError::WriteFailed {
+                path: dest.clone(),
+                problem: safety_envs::output::full_disk(&root).unwrap_or_else(|| e.to_string()),
+                last_good: last_good(&self.latest_checkpoint().ok().flatten(), "room on its disk"),
+            }
+        };
         // Not create_dir_all: a run folder deleted meanwhile is not remade.
-        fs::create_dir(&tmp).map_err(io(&tmp))?;
-        write(&tmp)?;
+        fs::create_dir(&tmp).map_err(io(&tmp)).map_err(failed)?;
+        self.fill_checkpoint(
+            &tmp,
+            &dest,
+            updates,
+            method,
+            env,
+            physics_steps_per_action,
+            model,
+            write,
+        )
+        .map_err(failed)?;
+        self.prune(keep)?;
+        Ok(dest)
+    }
+
+    /// [`RunDir::write_checkpoint`]'s body: the files, the manifest, the
+    /// rename into place.
+    #[allow(clippy::too_many_arguments)]
+    fn fill_checkpoint(
+        &self,
+        tmp: &Path,
+        dest: &Path,
+        updates: u64,
+        method: &str,
+        env: &str,
+        physics_steps_per_action: Option<usize>,
+        model: serde_json::Value,
+        write: impl FnOnce(&Path) -> Result<(), CheckpointError>,
+    ) -> Result<(), CheckpointError> {
+        write(tmp)?;
         let mut files = BTreeMap::new();
         let mut sha256 = BTreeMap::new();
         for entry in fs::read_dir(&tmp).map_err(io(&tmp))? {
@@ -728,11 +821,9 @@ impl RunDir {
         f.write_all(text.as_bytes()).map_err(io(&mpath))?;
         f.sync_all().map_err(io(&mpath))?;
         if dest.exists() {
-            remove_checkpoint(&dest)?;
+            remove_checkpoint(dest)?;
         }
-        fs::rename(&tmp, &dest).map_err(io(&dest))?;
-        self.prune(keep)?;
-        Ok(dest)
+        fs::rename(tmp, dest).map_err(io(dest))
     }
 
     /// Removes all but the newest `keep` checkpoints (keep 0 = keep all).
@@ -946,6 +1037,55 @@ mod tests {
             e.contains("optimizer.safetensors") && e.contains("too long"),
             "{e}"
         );
+        fs::remove_dir_all(base).unwrap();
+    }
+
+    #[test]
+    fn a_failed_checkpoint_leaves_nothing_and_names_the_last_good_one() {
+        let base = std::env::temp_dir().join(format!("icrl-ckpt-failed-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&base);
+        let run = RunDir::create_named(&base, "run").unwrap();
+        let model = serde_json::json!({});
+        let good = run
+            .write_checkpoint(10, "test", "darkroom", None, model.clone(), 2, |d| {
+                fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d))
+            })
+            .unwrap();
+        let e = run
+            .write_checkpoint(20, "test", "darkroom", None, model, 2, |d| {
+                fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d))?;
+                Err(CheckpointError::Invalid {
+                    path: d.join("optimizer.safetensors"),
+                    problem: "No space left on device (os error 28)".into(),
+                    fix: "check the disk".into(),
+                })
+            })
+            .unwrap_err()
+            .to_string();
+        assert!(e.contains("step_20: writing this checkpoint failed"), "{e}");
+        assert!(e.contains("No space left on device"), "{e}");
+        assert!(
+            e.contains(&format!("The last good checkpoint is {}", good.display())),
+            "{e}"
+        );
+        assert!(
+            !run.path.join("checkpoints/.tmp_step_20").exists(),
+            "nothing left behind"
+        );
+        assert!(!run.path.join("checkpoints/step_20").exists());
+        // Room for the checkpoints still to come is checked before training.
+        run.check_room(1 << 20, 2, 100).unwrap();
+        let e = run
+            .check_room(u64::MAX / 4, 2, 100)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("free, but 2 more checkpoints of about")
+                && e.contains("keep_checkpoints = 2"),
+            "{e}"
+        );
+        let e = run.check_room(u64::MAX / 4, 0, 1).unwrap_err().to_string();
+        assert!(e.contains("1 more checkpoint of about"), "{e}");
         fs::remove_dir_all(base).unwrap();
     }
 

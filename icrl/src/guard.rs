@@ -159,21 +159,7 @@ pub fn machine_memory() -> Option<(u64, u64)> {
     Some((field("MemAvailable:").unwrap_or(total), total))
 }
 
-/// Bytes as `12.3 MB`, `4.8 TB`.
-pub fn human_bytes(b: f64) -> String {
-    let units = ["B", "kB", "MB", "GB", "TB", "PB", "EB"];
-    let mut x = b;
-    let mut i = 0;
-    while x >= 1000.0 && i + 1 < units.len() {
-        x /= 1000.0;
-        i += 1;
-    }
-    if x.is_finite() {
-        format!("{x:.1} {}", units[i])
-    } else {
-        "more than 1e18 B".into()
-    }
-}
+pub use safety_envs::output::human_bytes;
 
 /// Memory a configuration needs, by part, in bytes (f64: a silly setting
 /// must not overflow the estimate itself).

@@ -68,6 +68,16 @@ impl Adam {
         }
     }
 
+    /// Bytes of the weights of `vs` plus Adam's two moments: what a
+    /// checkpoint of them holds (the disk room checked before training).
+    pub fn checkpoint_bytes(&self) -> u64 {
+        3 * self
+            .params
+            .iter()
+            .map(|(_, p, _, _)| (p.numel() * p.kind().elt_size_in_bytes()) as u64)
+            .sum::<u64>()
+    }
+
     /// Steps taken so far.
     pub fn step_count(&self) -> i64 {
         self.step

@@ -463,6 +463,92 @@ fn an_older_checkpoint_is_forked_into_a_new_run_not_resumed_in_place() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// A small RAM disk (tmpfs) mounted for one test and unmounted on drop.
+struct SmallDisk(PathBuf);
+
+impl SmallDisk {
+    /// `None` where this process may not mount file systems (not root, or a
+    /// container without the capability).
+    fn mount(dir: &Path, bytes: u64) -> Option<Self> {
+        let ok = Command::new("mount")
+            .args(["-t", "tmpfs", "-o", &format!("size={bytes}"), "tmpfs"])
+            .arg(dir)
+            .output()
+            .is_ok_and(|o| o.status.success());
+        ok.then(|| SmallDisk(dir.to_path_buf()))
+    }
+
+    /// Fills the disk until about `left` bytes are free.
+    fn fill_to(&self, left: u64) {
+        let free = safety_envs::output::free_bytes(&self.0).unwrap();
+        let n = free.saturating_sub(left) as usize;
+        std::fs::write(self.0.join(format!("filler{left}")), vec![7u8; n]).unwrap();
+    }
+}
+
+impl Drop for SmallDisk {
+    fn drop(&mut self) {
+        let _ = Command::new("umount").arg(&self.0).status();
+    }
+}
+
+#[test]
+fn a_full_disk_is_named_before_training_and_when_a_dataset_fills_it() {
+    let dir = tmp("full");
+    let mnt = dir.join("disk");
+    std::fs::create_dir_all(&mnt).unwrap();
+    let Some(disk) = SmallDisk::mount(&mnt, 4 << 20) else {
+        eprintln!("cannot mount a tmpfs here (not root?): the full-disk cases need one; skipped");
+        return;
+    };
+    // Training refuses at once when its checkpoints will not fit.
+    disk.fill_to(100_000);
+    let o = icrl(&[
+        "pretrain",
+        "--env",
+        "darkroom",
+        "--out",
+        &s(&mnt.join("runs")),
+    ]);
+    refused(&o, "free, but 3 more checkpoints of about");
+    refused(&o, "nothing was trained");
+    let runs = mnt.join("runs");
+    assert!(
+        !runs.exists() || std::fs::read_dir(&runs).unwrap().next().is_none(),
+        "no run folder left"
+    );
+    // A dataset that fills the disk is named as such, not as HDF5's short
+    // write of 18446744073709551615 bytes, and leaves no partial file.
+    disk.fill_to(20_000);
+    let out = mnt.join("h.h5");
+    let o = icrl(&[
+        "dataset",
+        "--env",
+        "darkroom",
+        "--out",
+        &s(&out),
+        "--tasks",
+        "4",
+        "--steps",
+        "20000",
+        "--cost-limits",
+        "0",
+        "--threads",
+        "1",
+    ]);
+    refused(&o, "the disk is full");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!err.contains("18446744073709551615"), "{err}");
+    let left: Vec<_> = std::fs::read_dir(&mnt)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| !n.starts_with("filler") && n != "runs")
+        .collect();
+    assert!(left.is_empty(), "left behind: {left:?}");
+    drop(disk);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 #[test]
 fn the_printed_eval_command_works_as_printed() {
     // A path with a space: the command must be quoted to survive pasting.

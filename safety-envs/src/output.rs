@@ -127,6 +127,62 @@ pub fn check_output(path: &Path, existing: Existing) -> Result<(), OutputError> 
     }
 }
 
+/// Bytes an unprivileged writer may still use on the file system holding
+/// `path` (or its nearest existing ancestor); `None` when that cannot be read.
+pub fn free_bytes(path: &Path) -> Option<u64> {
+    let existing = path
+        .ancestors()
+        .find(|a| !a.as_os_str().is_empty() && a.exists());
+    let s = nix::sys::statvfs::statvfs(existing.unwrap_or(Path::new("."))).ok()?;
+    Some(u64::from(s.blocks_available()).saturating_mul(u64::from(s.fragment_size())))
+}
+
+/// Refuses to start writing about `need` bytes of `what` at `path` when its
+/// disk has less room, naming both sizes and the fix.
+pub fn check_room(path: &Path, need: u64, what: &str, fix: &str) -> Result<(), OutputError> {
+    match free_bytes(path) {
+        Some(free) if free < need => Err(OutputError::new(
+            path,
+            format!(
+                "its disk has {} free, but {what} needs about {}: {fix}",
+                human_bytes(free as f64),
+                human_bytes(need as f64)
+            ),
+        )),
+        _ => Ok(()),
+    }
+}
+
+/// The sentence for a write that failed on a disk now (nearly) full, so
+/// the cause is named instead of a library's account of the short write;
+/// `None` when the disk has room (the failure had another cause).
+pub fn full_disk(path: &Path) -> Option<String> {
+    const NEARLY_FULL: u64 = 1 << 20;
+    let free = free_bytes(path)?;
+    (free < NEARLY_FULL).then(|| {
+        format!(
+            "the disk is full ({} free): free space on it, or choose a path on another disk",
+            human_bytes(free as f64)
+        )
+    })
+}
+
+/// Bytes as `12.3 MB`, `4.8 TB` (f64: a silly size must not overflow).
+pub fn human_bytes(b: f64) -> String {
+    let units = ["B", "kB", "MB", "GB", "TB", "PB", "EB"];
+    let mut x = b;
+    let mut i = 0;
+    while x >= 1000.0 && i + 1 < units.len() {
+        x /= 1000.0;
+        i += 1;
+    }
+    if x.is_finite() {
+        format!("{x:.1} {}", units[i])
+    } else {
+        "more than 1e18 B".into()
+    }
+}
+
 /// ELOOP (Linux): symbolic links that lead back to themselves.
 fn is_loop(e: &std::io::Error) -> bool {
     const ELOOP: i32 = 40;

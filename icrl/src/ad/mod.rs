@@ -370,7 +370,13 @@ fn resume_or_start(
     }
     // The resolved config (a grown `updates` included).
     write_atomic(&config_path, config_toml.as_bytes())?;
-    RunDir::open(dir)?.probe_checkpoint_path(cfg.updates as u64)?;
+    let run = RunDir::open(dir)?;
+    run.probe_checkpoint_path(cfg.updates as u64)?;
+    run.check_room(
+        opt.checkpoint_bytes() + crate::checkpoint::CHECKPOINT_SLACK,
+        cfg.keep_checkpoints,
+        (cfg.updates.saturating_sub(state.update) / cfg.checkpoint_every.max(1) + 1) as u64,
+    )?;
     Ok((state, last_ckpt))
 }
 

@@ -672,7 +672,11 @@ pub fn write_histories_to(
     output::write_file(path, existing, |tmp| {
         write_raw(tmp, file, n_obstacles)
             .and_then(|()| seal(tmp).map_err(|e| hdf5::Error::from(e.to_string().as_str())))
-            .map_err(|e| err(Problem::Unreadable(e.to_string())))
+            // HDF5 words a full disk as a short write of 2^64 - 1 bytes.
+            .map_err(|e| match output::full_disk(tmp) {
+                Some(full) => err(Problem::Output(full)),
+                None => err(Problem::Unreadable(e.to_string())),
+            })
     })
 }
 

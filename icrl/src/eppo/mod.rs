@@ -365,8 +365,24 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
         }
     };
     let cfg = learner.cfg.clone();
-    run.write_config(&toml::to_string(&cfg).map_err(|e| EppoError::Config(e.to_string()))?)?;
-    run.probe_checkpoint_path(cfg.total_updates)?;
+    let ready = (|| -> Result<(), EppoError> {
+        run.write_config(&toml::to_string(&cfg).map_err(|e| EppoError::Config(e.to_string()))?)?;
+        run.probe_checkpoint_path(cfg.total_updates)?;
+        // Weights, Adam's moments and the target weights (a third of the first).
+        run.check_room(
+            learner.opt.checkpoint_bytes() * 4 / 3 + crate::checkpoint::CHECKPOINT_SLACK,
+            cfg.keep_checkpoints,
+            cfg.total_updates.saturating_sub(learner.updates) / cfg.checkpoint_every.max(1) + 1,
+        )?;
+        Ok(())
+    })();
+    if let Err(e) = ready {
+        // A refused start leaves no empty run folder behind.
+        if resumed_from.is_none() {
+            run.remove_if_unused();
+        }
+        return Err(e);
+    }
     let env_options = EnvOptions {
         max_episode_steps: Some(cfg.max_episode_steps),
         physics_steps_per_action: cfg.physics_steps_per_action,
