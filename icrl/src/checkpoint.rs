@@ -793,8 +793,8 @@ impl RunDir {
         write(tmp)?;
         let mut files = BTreeMap::new();
         let mut sha256 = BTreeMap::new();
-        for entry in fs::read_dir(&tmp).map_err(io(&tmp))? {
-            let entry = entry.map_err(io(&tmp))?;
+        for entry in fs::read_dir(tmp).map_err(io(tmp))? {
+            let entry = entry.map_err(io(tmp))?;
             let len = entry.metadata().map_err(io(&entry.path()))?.len();
             let name = entry.file_name().to_string_lossy().into_owned();
             sha256.insert(name.clone(), sha256_file(&entry.path())?);

@@ -134,7 +134,7 @@ pub fn free_bytes(path: &Path) -> Option<u64> {
         .ancestors()
         .find(|a| !a.as_os_str().is_empty() && a.exists());
     let s = nix::sys::statvfs::statvfs(existing.unwrap_or(Path::new("."))).ok()?;
-    Some(u64::from(s.blocks_available()).saturating_mul(u64::from(s.fragment_size())))
+    Some(s.blocks_available().saturating_mul(s.fragment_size()))
 }
 
 /// Refuses to start writing about `need` bytes of `what` at `path` when its
