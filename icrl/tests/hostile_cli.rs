@@ -99,7 +99,7 @@ fn dataset_never_replaces_what_is_not_ours() {
     );
     refused(
         &icrl(&["pretrain", "--env", "darkroom", "--out", &s(&afile)]),
-        "not a folder (a file or a device is there)",
+        "afile: a file, not a folder: choose another folder",
     );
     // An existing dataset: refused without --force, replaced with it.
     let h5 = dir.join("h.h5");
