@@ -954,10 +954,7 @@ pub fn truncate_metrics(path: &Path, key: &str, updates: u64) -> Result<usize, C
     let mut kept = String::with_capacity(text.len());
     let mut dropped = 0;
     for line in text.lines() {
-        let keep = serde_json::from_str::<serde_json::Value>(line)
-            .ok()
-            .and_then(|v| v.get(key).and_then(serde_json::Value::as_u64))
-            .is_some_and(|u| u <= updates);
+        let keep = record_counter(line, key).is_some_and(|u| u <= updates);
         if keep {
             kept.push_str(line);
             kept.push('\n');
@@ -971,6 +968,25 @@ pub fn truncate_metrics(path: &Path, key: &str, updates: u64) -> Result<usize, C
         fs::rename(&tmp, path).map_err(io(path))?;
     }
     Ok(dropped)
+}
+
+/// The counter `key` (e.g. `updates`) of one `metrics.jsonl` line, if the
+/// line is a JSON record that has it.
+fn record_counter(line: &str, key: &str) -> Option<u64> {
+    serde_json::from_str::<serde_json::Value>(line)
+        .ok()?
+        .get(key)?
+        .as_u64()
+}
+
+/// The counter `key` of every record of a `metrics.jsonl`, in order (lines
+/// that are not records with it are skipped): which updates a run logged.
+pub fn recorded_counters(path: &Path, key: &str) -> Result<Vec<u64>, CheckpointError> {
+    let text = fs::read_to_string(path).map_err(io(path))?;
+    Ok(text
+        .lines()
+        .filter_map(|l| record_counter(l, key))
+        .collect())
 }
 
 impl MetricsWriter {
@@ -1264,16 +1280,7 @@ mod tests {
         f.write_all(b"{\"updates\": 5").unwrap();
         drop(f);
         assert_eq!(truncate_metrics(&path, "updates", 20).unwrap(), 3);
-        let text = fs::read_to_string(&path).unwrap();
-        let kept: Vec<u64> = text
-            .lines()
-            .map(|l| {
-                serde_json::from_str::<serde_json::Value>(l).unwrap()["updates"]
-                    .as_u64()
-                    .unwrap()
-            })
-            .collect();
-        assert_eq!(kept, vec![10, 20]);
+        assert_eq!(recorded_counters(&path, "updates").unwrap(), vec![10, 20]);
         assert_eq!(truncate_metrics(&path, "updates", 20).unwrap(), 0);
         assert_eq!(
             truncate_metrics(&dir.join("none.jsonl"), "updates", 0).unwrap(),

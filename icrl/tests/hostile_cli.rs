@@ -437,15 +437,8 @@ fn an_older_checkpoint_is_forked_into_a_new_run_not_resumed_in_place() {
         step2
     );
     // The branch's metrics: the origin's up to update 2, then its own.
-    let updates: Vec<u64> = std::fs::read_to_string(branch.join("metrics.jsonl"))
-        .unwrap()
-        .lines()
-        .map(|l| {
-            serde_json::from_str::<serde_json::Value>(l).unwrap()["updates"]
-                .as_u64()
-                .unwrap()
-        })
-        .collect();
+    let updates =
+        icrl::checkpoint::recorded_counters(&branch.join("metrics.jsonl"), "updates").unwrap();
     assert!(updates.windows(2).all(|w| w[0] <= w[1]), "{updates:?}");
     assert_eq!(updates.last(), Some(&4), "{updates:?}");
     assert_eq!(

@@ -1285,15 +1285,8 @@ pub(crate) fn stop_after_one_then_resume(cfg: &EppoConfig, out: &Path) -> (u64, 
     assert!(checkpoint.ends_with("step_1"), "{}", checkpoint.display());
     let run_dir = checkpoint.parent().unwrap().parent().unwrap().to_path_buf();
     let done = train(&options(Some(run_dir.clone()))).unwrap();
-    let recorded = std::fs::read_to_string(run_dir.join("metrics.jsonl"))
-        .unwrap()
-        .lines()
-        .map(|l| {
-            serde_json::from_str::<serde_json::Value>(l).unwrap()["updates"]
-                .as_u64()
-                .unwrap()
-        })
-        .collect();
+    let recorded =
+        crate::checkpoint::recorded_counters(&run_dir.join("metrics.jsonl"), "updates").unwrap();
     (done.updates, recorded)
 }
 
