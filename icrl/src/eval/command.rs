@@ -624,6 +624,20 @@ impl EvalOptions {
                 "--budgets: {b} must be in [{lo}, {hi}] (a cost budget per episode)"
             ));
         }
+        // The work, before its memory: an evaluation of hours with no end in
+        // sight is refused, not started.
+        let conds = self.budgets.as_ref().map_or(self.n_budgets, Vec::len) as u128;
+        let k = self.episodes.unwrap_or(env_defaults(self.env).episodes) as u128;
+        let episodes = conds * self.tasks as u128 * k;
+        if episodes > MAX_EVAL_EPISODES {
+            return bad(format!(
+                "this evaluation is {episodes} episodes per method ({conds} budgets x {} tasks x {k} \
+                 episodes), more than the {MAX_EVAL_EPISODES} one evaluation may hold (the paper's \
+                 largest protocol is 100 x 16 x 50 = 80000); lower --n-budgets (or the number of \
+                 --budgets), --tasks or --episodes",
+                self.tasks
+            ));
+        }
         self.memory_estimate()
             .check()
             .map_err(EvalCmdError::Options)
@@ -647,6 +661,10 @@ impl EvalOptions {
         m
     }
 }
+
+/// Episodes one evaluation may run per method: 12.5 times the paper's
+/// largest protocol (100 budgets x 16 tasks x 50 episodes).
+pub const MAX_EVAL_EPISODES: u128 = 1_000_000;
 
 /// The RTG and CTG values `eval` accepts (`--rtg`, `--budgets`).
 pub const CONDITIONING_RANGE: (f32, f32) = (0.0, 10_000.0);
@@ -1050,6 +1068,14 @@ mod tests {
         opts.tasks = 0;
         let e = run(Vec::new(), &opts).unwrap_err().to_string();
         assert!(e.contains("task set is empty"), "{e}");
+        // Hours of work with no end in sight: refused before anything runs.
+        let mut opts = options(dir.clone());
+        (opts.tasks, opts.episodes, opts.n_budgets) = (2, Some(2), 10_000_000);
+        let e = run(Vec::new(), &opts).unwrap_err().to_string();
+        assert!(
+            e.contains("this evaluation is 40000000 episodes per method (10000000 budgets x 2 tasks x 2 episodes)"),
+            "{e}"
+        );
         let mut opts = options(dir);
         opts.random = false;
         let e = run(Vec::new(), &opts).unwrap_err().to_string();
