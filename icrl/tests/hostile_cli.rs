@@ -251,11 +251,16 @@ fn eval_outputs_conditions_and_reports_are_checked() {
         stdout.contains(&format!("wrote {n} files")),
         "{stdout} vs {n} files"
     );
-    // Bad 2 and 3: sizes under the memory estimate, conditioning in range.
+    // Bad 2 and 3: sizes under a limit on the work (and the memory
+    // estimate), conditioning in range.
     let t = std::time::Instant::now();
     refused(
         &eval(&[&run], &dir.join("e4"), &["--n-budgets", "100000000000"]),
-        "needs about",
+        "this evaluation is 400000000000 episodes per method",
+    );
+    refused(
+        &eval(&[&run], &dir.join("e4"), &["--n-budgets", "10000000"]),
+        "lower --n-budgets (or the number of --budgets), --tasks or --episodes",
     );
     assert!(t.elapsed().as_secs() < 30, "refused before sampling");
     refused(
