@@ -561,22 +561,27 @@ impl RunDir {
         fs::write(&path, toml_text).map_err(io(&path))
     }
 
-    /// The `checkpoints/step_N` folder with the largest N, if any.
-    pub fn latest_checkpoint(&self) -> Result<Option<PathBuf>, CheckpointError> {
+    /// The `checkpoints/step_N` folders, by N.
+    fn checkpoints(&self) -> Result<Vec<(u64, PathBuf)>, CheckpointError> {
         let dir = self.path.join("checkpoints");
-        let mut best: Option<(u64, PathBuf)> = None;
+        let mut steps = Vec::new();
         for entry in fs::read_dir(&dir).map_err(io(&dir))? {
             let entry = entry.map_err(io(&dir))?;
             let name = entry.file_name().to_string_lossy().into_owned();
             if let Some(n) = name
                 .strip_prefix("step_")
                 .and_then(|s| s.parse::<u64>().ok())
-                && best.as_ref().is_none_or(|(b, _)| n > *b)
             {
-                best = Some((n, entry.path()));
+                steps.push((n, entry.path()));
             }
         }
-        Ok(best.map(|(_, p)| p))
+        steps.sort();
+        Ok(steps)
+    }
+
+    /// The `checkpoints/step_N` folder with the largest N, if any.
+    pub fn latest_checkpoint(&self) -> Result<Option<PathBuf>, CheckpointError> {
+        Ok(self.checkpoints()?.pop().map(|(_, p)| p))
     }
 
     /// Refuses to continue a run in place from `checkpoint` when the run has
@@ -603,7 +608,7 @@ impl RunDir {
     }
 
     /// Branches a new run under `out` from `checkpoint` of this run: a new
-    /// run folder (named as [`RunDir::create`] names one, for `seed`) holding
+    /// run folder ([`RunDir::create`]'s, for `seed`) holding
     /// `config_toml`, the checkpoint (hard links where the file system
     /// allows: checkpoint files are never rewritten in place), the metrics
     /// up to the checkpoint's update (`metrics_key`), this run's `spec.json`
@@ -618,16 +623,7 @@ impl RunDir {
         metrics_key: &str,
     ) -> Result<(Self, PathBuf), CheckpointError> {
         let manifest = read_manifest(checkpoint)?;
-        let base = self
-            .path
-            .file_name()
-            .map(|n| n.to_string_lossy().into_owned())
-            .and_then(|n| {
-                let mut parts = n.splitn(4, "__");
-                Some(format!("{}__{}", parts.next()?, parts.next()?))
-            })
-            .unwrap_or_else(|| format!("{}__{}", manifest.env, manifest.method));
-        let new = Self::create_named(out, &format!("{base}__{seed}__{}", utc_stamp()))?;
+        let new = Self::create(out, &manifest.env, &manifest.method, seed)?;
         let made = (|| {
             let step = new
                 .path
@@ -691,19 +687,17 @@ impl RunDir {
     /// Refuses to train when the run's disk lacks room for the checkpoints
     /// still to come: each about `checkpoint_bytes`; with `keep` kept (0:
     /// all), `keep` + 1 are on disk at once while the newest is written, and
-    /// `future` more will be written before the run ends.
+    /// one is written every `every` of the `updates_left` updates and at the end.
     pub fn check_room(
         &self,
         checkpoint_bytes: u64,
         keep: usize,
-        future: u64,
+        updates_left: u64,
+        every: u64,
     ) -> Result<(), CheckpointError> {
+        let future = updates_left / every.max(1) + 1;
         let dir = self.path.join("checkpoints");
-        let existing = fs::read_dir(&dir)
-            .map_err(io(&dir))?
-            .filter_map(Result::ok)
-            .filter(|e| e.file_name().to_string_lossy().starts_with("step_"))
-            .count() as u64;
+        let existing = self.checkpoints()?.len() as u64;
         let at_once = if keep == 0 {
             existing + future
         } else {
@@ -831,19 +825,7 @@ impl RunDir {
         if keep == 0 {
             return Ok(());
         }
-        let dir = self.path.join("checkpoints");
-        let mut steps: Vec<(u64, PathBuf)> = Vec::new();
-        for entry in fs::read_dir(&dir).map_err(io(&dir))? {
-            let entry = entry.map_err(io(&dir))?;
-            let name = entry.file_name().to_string_lossy().into_owned();
-            if let Some(n) = name
-                .strip_prefix("step_")
-                .and_then(|s| s.parse::<u64>().ok())
-            {
-                steps.push((n, entry.path()));
-            }
-        }
-        steps.sort();
+        let steps = self.checkpoints()?;
         let excess = steps.len().saturating_sub(keep);
         for (_, p) in steps.into_iter().take(excess) {
             remove_checkpoint(&p)?;
@@ -1090,9 +1072,9 @@ mod tests {
         );
         assert!(!run.path.join("checkpoints/step_20").exists());
         // Room for the checkpoints still to come is checked before training.
-        run.check_room(1 << 20, 2, 100).unwrap();
+        run.check_room(1 << 20, 2, 9900, 100).unwrap();
         let e = run
-            .check_room(u64::MAX / 4, 2, 100)
+            .check_room(u64::MAX / 4, 2, 9900, 100)
             .unwrap_err()
             .to_string();
         assert!(
@@ -1100,7 +1082,10 @@ mod tests {
                 && e.contains("keep_checkpoints = 2"),
             "{e}"
         );
-        let e = run.check_room(u64::MAX / 4, 0, 1).unwrap_err().to_string();
+        let e = run
+            .check_room(u64::MAX / 4, 0, 0, 100)
+            .unwrap_err()
+            .to_string();
         assert!(e.contains("1 more checkpoint of about"), "{e}");
         fs::remove_dir_all(base).unwrap();
     }

@@ -375,7 +375,8 @@ fn resume_or_start(
     run.check_room(
         opt.checkpoint_bytes() + crate::checkpoint::CHECKPOINT_SLACK,
         cfg.keep_checkpoints,
-        (cfg.updates.saturating_sub(state.update) / cfg.checkpoint_every.max(1) + 1) as u64,
+        cfg.updates.saturating_sub(state.update) as u64,
+        cfg.checkpoint_every as u64,
     )?;
     Ok((state, last_ckpt))
 }

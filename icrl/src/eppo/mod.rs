@@ -372,7 +372,8 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
         run.check_room(
             learner.opt.checkpoint_bytes() * 4 / 3 + crate::checkpoint::CHECKPOINT_SLACK,
             cfg.keep_checkpoints,
-            cfg.total_updates.saturating_sub(learner.updates) / cfg.checkpoint_every.max(1) + 1,
+            cfg.total_updates.saturating_sub(learner.updates),
+            cfg.checkpoint_every,
         )?;
         Ok(())
     })();
