@@ -201,6 +201,13 @@ pub struct EppoConfig {
     /// Which steps the actor's cost penalty lambda x Qc weighs (issue 18).
     #[serde(default)]
     pub penalty: PenaltyForm,
+    /// What the multiplier integrates on each sampled trajectory (issue 18).
+    #[serde(default)]
+    pub violation_signal: ViolationSignal,
+    /// `violation_signal = "late_rate"`: the share of later episodes over
+    /// budget at which lambda stops rising (the integrator's set point).
+    #[serde(default = "default_lambda_target_rate")]
+    pub lambda_target_rate: f64,
 
     // The loop's shape (issue 20): both together, so merges stay simple.
     /// Collect and learn at once on two threads (`overlap.rs`): an actor
@@ -239,6 +246,31 @@ pub enum PenaltyForm {
     /// budget, max(0, Qc(h_t, a) - CTG_t). Zero while the cost critic expects
     /// the episode to stay within its budget, whatever happened elsewhere.
     Hinge,
+}
+
+/// The per-trajectory violation g that the multiplier integrates.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ViolationSignal {
+    /// Eq. (7): max_k (C_k - delta), the worst episode's excess in cost
+    /// units. In a dark room the first, blind episodes keep it positive
+    /// whatever the agent learns, so lambda climbs to its cap on every
+    /// training seed and the cap becomes the setting that decides the run
+    /// (results/eppo_darkroom_budget, runs E1, c6, s2).
+    #[default]
+    WorstExcess,
+    /// The share of the trajectory's later half of episodes (k > K/2) that
+    /// ended over budget, minus `lambda_target_rate`: the quantity the budget
+    /// promises (within budget once the context has taught the task). Bounded
+    /// in [-rate, 1 - rate], it falls below zero once the agent keeps its
+    /// later episodes within budget, so lambda settles instead of reaching
+    /// the cap.
+    LateRate,
+}
+
+/// Absent from a config: lambda stops rising once 5% of later episodes are over budget.
+fn default_lambda_target_rate() -> f64 {
+    0.05
 }
 
 /// Absent from a config: one SafeDarkRoom cell.
@@ -351,6 +383,7 @@ impl EppoConfig {
             ("eps_end", self.eps_end, Range::UNIT),
             ("relabel_prob", self.relabel_prob, Range::UNIT),
             ("lambda_kp", self.lambda_kp, Range::NON_NEGATIVE),
+            ("lambda_target_rate", self.lambda_target_rate, Range::UNIT),
             ("lambda_kd", self.lambda_kd, Range::NON_NEGATIVE),
             (
                 "lambda_smoothing",

@@ -306,12 +306,13 @@ pub fn lambda_update(lambda: f64, max_violations: &[f32], eta: f64, lambda_max: 
     }
 }
 
-/// mean_j max_k (C_jk - delta_j), Eq. (7)'s violation; `None` for no trajectory.
-pub(super) fn mean_violation(max_violations: &[f32]) -> Option<f64> {
-    if max_violations.is_empty() {
+/// The batch mean of the trajectories' violations (Eq. 7: mean_j max_k (C_jk
+/// - delta_j)); `None` for no trajectory.
+pub(super) fn mean_violation(violations: &[f32]) -> Option<f64> {
+    if violations.is_empty() {
         return None;
     }
-    Some(max_violations.iter().map(|&x| f64::from(x)).sum::<f64>() / max_violations.len() as f64)
+    Some(violations.iter().map(|&x| f64::from(x)).sum::<f64>() / violations.len() as f64)
 }
 
 /// target <- (1 - tau) target + tau online, for every variable by name.

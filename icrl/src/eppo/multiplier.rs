@@ -1,6 +1,7 @@
 //! The cost multiplier lambda. Eq. (7) is an integrator,
 //! lambda <- clip(lambda + eta g, 0, lambda_max), with g the batch mean of
-//! max_k (C_k - delta). An
+//! max_k (C_k - delta) (or, with `violation_signal = "late_rate"`, of the
+//! share of later episodes over budget less its target). An
 //! integrator overshoots: it keeps rising until the cost is under budget, then
 //! takes as long to unwind, and on some training seeds that stops search
 //! before the cost falls (issue 18, run E1). The PID Lagrangian (Stooke,
@@ -52,10 +53,11 @@ impl Multiplier {
         }
     }
 
-    /// One step on a batch's per-trajectory max_k (C_k - delta); an empty
-    /// batch changes nothing.
-    pub fn update(&mut self, max_violations: &[f32], gains: &Gains) {
-        let Some(g) = mean_violation(max_violations) else {
+    /// One step on a batch's per-trajectory violations (Eq. 7's max_k (C_k -
+    /// delta), or the late over-budget rate less its target); an empty batch
+    /// changes nothing.
+    pub fn update(&mut self, violations: &[f32], gains: &Gains) {
+        let Some(g) = mean_violation(violations) else {
             return;
         };
         self.integral = (self.integral + gains.ki * g).clamp(0.0, gains.max);

@@ -11,7 +11,7 @@ use tch::{Device, Tensor};
 
 use safety_envs::GoalRule;
 
-use super::config::EppoConfig;
+use super::config::{EppoConfig, ViolationSignal};
 use super::net::NetSpec;
 use crate::tokens::{self, StepToken};
 
@@ -67,6 +67,23 @@ impl Trajectory {
             .iter()
             .map(|c| c - self.budget)
             .fold(f32::NEG_INFINITY, f32::max)
+    }
+
+    /// The share of episodes k > K/2 whose cost exceeded the budget.
+    pub fn late_over_budget_rate(&self) -> f32 {
+        let late = &self.episode_costs[self.episode_costs.len() / 2..];
+        if late.is_empty() {
+            return 0.0;
+        }
+        late.iter().filter(|&&c| c > self.budget).count() as f32 / late.len() as f32
+    }
+
+    /// The trajectory's term in the multiplier's update under `signal`.
+    pub fn violation(&self, signal: ViolationSignal, target_rate: f64) -> f32 {
+        match signal {
+            ViolationSignal::WorstExcess => self.max_violation(),
+            ViolationSignal::LateRate => self.late_over_budget_rate() - target_rate as f32,
+        }
     }
 }
 
@@ -174,8 +191,8 @@ pub(super) struct Batch {
     /// past an episode's end, since the budget binds each episode on its own
     /// (Eq. 6, 7): a violation charges only its own episode.
     pub(super) cost_bootstrap: Tensor,
-    /// (B,) max_k (C_k - delta) of each sampled trajectory (Eq. 7).
-    pub(super) max_violation: Vec<f32>,
+    /// (B,) each sampled trajectory's violation g ([`Trajectory::violation`]).
+    pub(super) violation: Vec<f32>,
 }
 
 /// The critics' pretraining-only dense reward for step `step` of `t`:
@@ -335,7 +352,10 @@ pub(super) fn make_batch(
         td_valid: f(&td_valid),
         bootstrap: f(&boot),
         cost_bootstrap: f(&cost_boot),
-        max_violation: trajs.iter().map(|t| t.max_violation()).collect(),
+        violation: trajs
+            .iter()
+            .map(|t| t.violation(cfg.violation_signal, cfg.lambda_target_rate))
+            .collect(),
     }
 }
 

@@ -610,6 +610,38 @@ fn lambda_rises_falls_and_respects_the_cap() {
     assert_eq!(t.max_violation(), 3.0);
 }
 
+/// The late-rate signal counts only episodes k > K/2 and subtracts its
+/// target, so blind early episodes cannot hold lambda up, and a trajectory
+/// whose later episodes keep the budget pulls lambda down.
+#[test]
+fn late_rate_signal_ignores_the_blind_first_half() {
+    let t = Trajectory {
+        budget: 2.0,
+        episode_costs: vec![9.0, 9.0, 0.0, 3.0],
+        ..Default::default()
+    };
+    assert_eq!(t.late_over_budget_rate(), 0.5, "episode 4 of 3..4 over");
+    assert_eq!(t.violation(ViolationSignal::WorstExcess, 0.05), 7.0);
+    assert!((t.violation(ViolationSignal::LateRate, 0.05) - 0.45).abs() < 1e-6);
+    let kept = Trajectory {
+        budget: 2.0,
+        episode_costs: vec![9.0, 9.0, 9.0, 2.0, 1.0, 0.0],
+        ..Default::default()
+    };
+    assert!((kept.violation(ViolationSignal::LateRate, 0.05) + 0.05).abs() < 1e-6);
+    let mut m = Multiplier::new(0.5);
+    let gains = Gains {
+        ki: 0.1,
+        kp: 0.0,
+        kd: 0.0,
+        smoothing: 0.9,
+        max: 1.0,
+    };
+    m.update(&[kept.violation(ViolationSignal::LateRate, 0.05)], &gains);
+    assert!(m.lambda < 0.5, "falls while later episodes keep the budget");
+    assert!(kept.max_violation() > 0.0, "where Eq. (7) would still rise");
+}
+
 /// One batch of every trajectory in `learner`'s replay (windows drawn with
 /// seed 0, no novelty bonus).
 fn replay_batch(learner: &Learner) -> Batch {
