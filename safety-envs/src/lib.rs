@@ -6,6 +6,8 @@
 //! - [`darkroom`]: SafeDarkRoom, the 9x9 grid world.
 //! - [`nav`]: SafeDarkMujoco Point and Car, the MuJoCo goal tasks.
 //! - [`make`]: environments by name ([`EnvName`], [`make_env`]).
+//! - [`goal_shown`]: the goal appended to the observation, for the debugging
+//!   ladder only.
 //! - [`vec_env`]: [`VecEnv`], many environments stepped across threads.
 //! - [`output`]: output files written atomically, never over what is not
 //!   ours, and the run and output locks.
@@ -13,6 +15,7 @@
 pub mod darkroom;
 pub mod env;
 pub mod error;
+pub mod goal_shown;
 pub mod make;
 pub mod mujoco;
 pub mod nav;
@@ -23,6 +26,7 @@ pub mod vec_env;
 pub use darkroom::{DarkRoomConfig, SafeDarkRoom};
 pub use env::{Action, CmdpEnv, GoalRule, Space, StepOutcome};
 pub use error::{EnvError, MujocoError};
+pub use goal_shown::GoalShown;
 pub use make::{EnvName, EnvOptions, make_env, spawn_config};
 pub use nav::{
     NavConfig, OLD_PHYSICS_STEPS_PER_ACTION, PHYSICS_STEPS_PER_ACTION, PHYSICS_STEPS_PER_SG_STEP,

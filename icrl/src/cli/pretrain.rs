@@ -198,8 +198,14 @@ fn check_eppo_resume(path: &Path, saved: &toml::Table, now: &toml::Table) -> Res
 
 /// Settings a fork keeps: the network's shape, which the checkpoint's
 /// weights must fit (loading would refuse them later; refused here, before
-/// anything is written).
-const FORK_KEEPS: [&str; 4] = ["model.", "encoder_hidden", "head_hidden", "n_critics"];
+/// anything is written), and the observation it was sized for.
+const FORK_KEEPS: [&str; 5] = [
+    "model.",
+    "encoder_hidden",
+    "head_hidden",
+    "n_critics",
+    "goal_in_observation",
+];
 
 /// `pretrain --resume CKPT --fork OUT`: branches a new run under `out` from
 /// CKPT (a run folder: its latest checkpoint) with the `sets` applied to its

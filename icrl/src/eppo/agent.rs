@@ -59,6 +59,16 @@ impl EppoAgent {
             .map_err(|e| bad("state.json", e.to_string()))?;
         let state: TrainState =
             serde_json::from_str(&text).map_err(|e| bad("state.json", e.to_string()))?;
+        if cfg.goal_in_observation {
+            return Err(EppoError::Checkpoint(CheckpointError::Invalid {
+                path: dir.join("config.toml"),
+                problem: "it was trained with goal_in_observation = true, a debugging-ladder \
+                          rung whose agent is shown the goal; the tasks it would be evaluated \
+                          on hide it"
+                    .into(),
+                fix: "evaluate a checkpoint trained without goal_in_observation".into(),
+            }));
+        }
         // The files decide sizes: check them before building anything.
         cfg.validate()
             .map_err(|e| bad("config.toml", e.to_string()))?;

@@ -176,6 +176,13 @@ pub struct EppoConfig {
     /// measures revisiting alone. Off in every preset.
     #[serde(default)]
     pub scripted_first_episode: bool,
+    /// The ladder's goal-conditioned rung: the goal's position appended to
+    /// every observation (`safety_envs::GoalShown`), so reaching it needs no
+    /// memory; its success against the shown-goal rung's separates driving
+    /// to a position from recalling one. Such a checkpoint cannot be
+    /// evaluated (the tasks hide the goal). Off in every preset.
+    #[serde(default)]
+    pub goal_in_observation: bool,
     /// A dense reward for the critics during pretraining only, after PEARL's
     /// sparse-reward point robot: each step's TD reward also gets this times
     /// the decrease in distance to the goal (potential-based shaping, which

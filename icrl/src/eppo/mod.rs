@@ -55,8 +55,10 @@
 //! Levers for the robots' ladder, off in every preset until a run shows they
 //! help (results/eppo_point_ladder): hindsight task relabelling of replayed
 //! trajectories (`relabel_prob`, `relabel.rs`), a dense reward for the
-//! critics only (`dense_reward_coef`; tokens stay sparse) and a scripted first
-//! episode that shows the goal (`scripted_first_episode`).
+//! critics only (`dense_reward_coef`; tokens stay sparse), a scripted first
+//! episode that shows the goal (`scripted_first_episode`) and, as a
+//! diagnostic never evaluated, the goal in the observation
+//! (`goal_in_observation`: driving to a position without recalling it).
 //!
 //! Levers for the budget ladder (results/eppo_darkroom_budget), likewise off
 //! until measured: behaviour noise capped once a trajectory has found its goal
@@ -102,7 +104,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use tch::{Device, nn};
 
-use safety_envs::{EnvName, EnvOptions, GoalRule, VecEnv, make_env};
+use safety_envs::{CmdpEnv, EnvError, EnvName, EnvOptions, GoalRule, GoalShown, VecEnv, make_env};
 
 pub use agent::EppoAgent;
 pub use checkpoint::recorded_pretrain_tasks;
@@ -159,13 +161,7 @@ impl Learner {
         if cfg.torch_threads > 0 {
             tch::set_num_threads(cfg.torch_threads);
         }
-        let probe = make_env(
-            env,
-            &EnvOptions {
-                max_episode_steps: Some(cfg.max_episode_steps),
-                physics_steps_per_action: cfg.physics_steps_per_action,
-            },
-        )?;
+        let probe = make_training_env(env, &cfg)?;
         let spec = NetSpec::from_spaces(&probe.observation_space(), &probe.action_space())?;
         if cfg.scripted_first_episode && probe.goal_seeking_action().is_none() {
             return Err(EppoError::Config(format!(
@@ -401,7 +397,7 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
     // The scale the user reads progress against (seconds, even for Car).
     let random = crate::run_summary::random_policy(opts.env, &env_options, 100, cfg.seed)?;
     let envs = (0..cfg.n_envs)
-        .map(|_| make_env(opts.env, &env_options))
+        .map(|_| make_training_env(opts.env, &cfg))
         .collect::<Result<Vec<_>, _>>()?;
     let mut venv = VecEnv::new(envs, cfg.env_threads, true)?;
     let mut session = Session::start(run, &learner, opts.progress, random, resumed_from)?;
@@ -418,6 +414,24 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
         }
     }
     session.finish(&learner)
+}
+
+/// One of the environments training collects in: `env` with the run's time
+/// limit and macro action, its goal in the observation where the ladder's
+/// goal-conditioned rung asks for it (`goal_in_observation`).
+fn make_training_env(env: EnvName, cfg: &EppoConfig) -> Result<Box<dyn CmdpEnv>, EnvError> {
+    let inner = make_env(
+        env,
+        &EnvOptions {
+            max_episode_steps: Some(cfg.max_episode_steps),
+            physics_steps_per_action: cfg.physics_steps_per_action,
+        },
+    )?;
+    Ok(if cfg.goal_in_observation {
+        Box::new(GoalShown::new(inner))
+    } else {
+        inner
+    })
 }
 
 /// The updates the replay ratio owes after a round ([`Learner::updates_owed`]),

@@ -1100,6 +1100,47 @@ fn n_step_targets_sum_rewards_until_the_bootstrap_stops() {
     assert_eq!(y2[2], 16.0);
 }
 
+/// The goal-conditioned rung: every collected observation ends with the
+/// task's goal, and its checkpoint is refused by evaluation by name.
+#[test]
+fn the_goal_conditioned_rung_sees_the_goal_and_is_never_evaluated() {
+    let cfg = EppoConfig {
+        goal_in_observation: true,
+        ..tiny()
+    };
+    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+    assert_eq!(learner.spec.obs_dim, 4, "position and goal");
+    let envs = (0..cfg.n_envs)
+        .map(|_| make_training_env(EnvName::DarkRoom, &cfg).unwrap())
+        .collect();
+    let mut venv = VecEnv::new(envs, 1, true).unwrap();
+    learner.collect(&mut venv).unwrap();
+    for t in &learner.replay.trajectories {
+        for step in t.obs.chunks(4) {
+            assert_eq!(
+                step[2..],
+                t.goal,
+                "the goal at the end of every observation"
+            );
+        }
+    }
+    let out = std::env::temp_dir().join(format!("icrl-eppo-goal-{}", std::process::id()));
+    let report = train(&PretrainOptions {
+        env: EnvName::DarkRoom,
+        cfg,
+        out: out.clone(),
+        resume: None,
+        progress: false,
+    })
+    .unwrap();
+    let err = EppoAgent::load(&report.last_checkpoint, Device::Cpu)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(err.contains("goal_in_observation"), "{err}");
+    std::fs::remove_dir_all(&out).unwrap();
+}
+
 #[test]
 fn pretrain_end_to_end_checkpoints_resumes_and_loads() {
     let out = std::env::temp_dir().join(format!("icrl-eppo-e2e-{}", std::process::id()));
