@@ -198,12 +198,13 @@ fn check_eppo_resume(path: &Path, saved: &toml::Table, now: &toml::Table) -> Res
 
 /// Settings a fork keeps: the network's shape, which the checkpoint's
 /// weights must fit (loading would refuse them later; refused here, before
-/// anything is written), and the observation it was sized for.
-const FORK_KEEPS: [&str; 5] = [
+/// anything is written), its heads and the observation it was sized for.
+const FORK_KEEPS: [&str; 6] = [
     "model.",
     "encoder_hidden",
     "head_hidden",
     "n_critics",
+    "goal_recall_coef",
     "goal_in_observation",
 ];
 

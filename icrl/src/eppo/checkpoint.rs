@@ -208,7 +208,7 @@ pub fn recorded_pretrain_tasks(dir: &Path) -> Result<Option<PretrainTasks>, Eppo
 }
 
 pub(super) fn model_manifest(cfg: &EppoConfig, spec: &NetSpec) -> serde_json::Value {
-    serde_json::json!({
+    let mut manifest = serde_json::json!({
         // The token layout: checkpoints from before the arrived observation
         // was added read a narrower token and are refused by name.
         "token": "obs,arrived_obs,prev_action,reward,cost,ctg,start",
@@ -219,5 +219,10 @@ pub(super) fn model_manifest(cfg: &EppoConfig, spec: &NetSpec) -> serde_json::Va
         "obs_dim": spec.obs_dim,
         "n_actions": spec.n_actions,
         "act_dim": spec.act_flat(),
-    })
+    });
+    // Only runs with the head record it, so older checkpoints stay loadable.
+    if cfg.goal_recall_coef > 0.0 {
+        manifest["goal_recall_head"] = true.into();
+    }
+    manifest
 }

@@ -176,6 +176,16 @@ pub struct EppoConfig {
     /// measures revisiting alone. Off in every preset.
     #[serde(default)]
     pub scripted_first_episode: bool,
+    /// An auxiliary loss for pretraining only: a head reads the goal's
+    /// position off the trajectory encoding h_t at every step after the
+    /// window's first success (the goal then sits in the context, as the
+    /// observation its reward arrived with), weighted by this. Recalling a
+    /// found goal is what revisiting needs, and a sparse reward teaches it
+    /// slowly (results/eppo_point_ladder); this supervises it directly, as
+    /// belief decoders do in meta-RL. The head adds to the checkpoint; the
+    /// policy never reads it. 0: off (the paper).
+    #[serde(default)]
+    pub goal_recall_coef: f64,
     /// The ladder's goal-conditioned rung: the goal's position appended to
     /// every observation (`safety_envs::GoalShown`), so reaching it needs no
     /// memory; its success against the shown-goal rung's separates driving
@@ -389,6 +399,11 @@ impl EppoConfig {
             ("eps_start", self.eps_start, Range::UNIT),
             ("eps_end", self.eps_end, Range::UNIT),
             ("relabel_prob", self.relabel_prob, Range::UNIT),
+            (
+                "goal_recall_coef",
+                self.goal_recall_coef,
+                Range::NON_NEGATIVE,
+            ),
             ("lambda_kp", self.lambda_kp, Range::NON_NEGATIVE),
             ("lambda_target_rate", self.lambda_target_rate, Range::UNIT),
             ("lambda_kd", self.lambda_kd, Range::NON_NEGATIVE),

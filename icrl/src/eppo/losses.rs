@@ -6,7 +6,7 @@ use serde::Serialize;
 use tch::{Kind, Tensor, nn};
 
 use super::config::{EppoConfig, EppoError, PenaltyForm};
-use super::net::{EppoNet, tanh_gaussian_log_prob, tanh_gaussian_sample};
+use super::net::{EppoNet, Head, tanh_gaussian_log_prob, tanh_gaussian_sample};
 use super::replay::Batch;
 
 /// Scalars of one update.
@@ -24,6 +24,8 @@ pub struct UpdateStats {
     pub q_mean: f64,
     pub target_mean: f64,
     pub log_std_mean: f64,
+    /// The goal-recall loss (NaN without the head).
+    pub goal_recall_loss: f64,
 }
 
 /// What [`losses`] returns besides the three losses and the entropy.
@@ -31,6 +33,8 @@ pub(super) struct LossDiagnostics {
     pub(super) q_mean: Tensor,
     pub(super) target_mean: Tensor,
     pub(super) log_std_mean: Option<Tensor>,
+    /// The goal-recall loss (with gradient), where the net has the head.
+    pub(super) goal_recall: Option<Tensor>,
 }
 
 /// Shifts (B, L) left by one along time: out[:, t] = x[:, t + 1], 0 at the end.
@@ -90,6 +94,10 @@ pub(super) fn losses(
         ),
         target_mean: masked_mean(&y, &batch.td_valid),
         log_std_mean: actor.log_std_mean,
+        goal_recall: net
+            .goal_recall
+            .as_ref()
+            .map(|head| goal_recall_loss(head, &h, batch)),
     };
     let (q_taken, qc_taken) = (actor.q_taken, actor.qc_taken);
     let value_loss = masked_mean(
@@ -107,6 +115,16 @@ pub(super) fn losses(
         actor.entropy,
         diagnostics,
     ))
+}
+
+/// Squared distance between the goal read off h_t and the trajectory's goal,
+/// averaged over the steps after the window's first success.
+pub(super) fn goal_recall_loss(head: &Head, h: &Tensor, batch: &Batch) -> Tensor {
+    let recalled = head.forward(h); // (B, L, 2)
+    let error = (recalled - batch.goal.unsqueeze(1))
+        .square()
+        .sum_dim_intlist(-1, false, Kind::Float); // (B, L)
+    masked_mean(&error, &batch.goal_known)
 }
 
 /// The reward and cost TD targets y and yc, (B, L) each, from the target

@@ -75,7 +75,8 @@
 //! in-context signal), `discovery_rate` and `revisit_rate` (P(goal at episode
 //! k > 1 | not found / found earlier in the trajectory)), `found_goal`
 //! (fraction of trajectories that found it), `lambda`, `losses/value_loss`, `losses/cost_value_loss`,
-//! `losses/policy_loss`, `losses/entropy`, `losses/grad_norm`, `charts/epsilon`,
+//! `losses/policy_loss`, `losses/entropy`, `losses/grad_norm`,
+//! `losses/goal_recall` (NaN without the head), `charts/epsilon`,
 //! `charts/updates_per_s`, `charts/env_steps_per_s`, `charts/cpu_learner` and
 //! (overlapped) `charts/cpu_actor` (the share of a core each thread kept busy
 //! since the start), `time/<phase>` and `time/actor/<phase>` (cumulative wall
@@ -259,7 +260,10 @@ impl Learner {
             self.multiplier.lambda,
             &self.cfg,
         )?;
-        let loss = (&lv + &lc) * self.cfg.critic_weight + &lp;
+        let mut loss = (&lv + &lc) * self.cfg.critic_weight + &lp;
+        if let Some(recall) = &diag.goal_recall {
+            loss += recall * self.cfg.goal_recall_coef;
+        }
         self.times.forward += lap(&mut clock);
         // A NaN or infinite loss or gradient is never applied: the weights
         // stay those of the last good update and `train` stops with this.
@@ -293,6 +297,10 @@ impl Learner {
             q_mean: diag.q_mean.double_value(&[]),
             target_mean: diag.target_mean.double_value(&[]),
             log_std_mean: diag.log_std_mean.map_or(f64::NAN, |t| t.double_value(&[])),
+            goal_recall_loss: diag
+                .goal_recall
+                .as_ref()
+                .map_or(f64::NAN, |t| t.double_value(&[])),
         };
         self.times.targets += lap(&mut clock);
         Ok(stats)
@@ -650,6 +658,7 @@ fn round_record(
         "losses/q_mean": avg(|s| s.q_mean),
         "losses/target_mean": avg(|s| s.target_mean),
         "losses/log_std_mean": avg(|s| s.log_std_mean),
+        "losses/goal_recall": avg(|s| s.goal_recall_loss),
         "charts/action_abs": round.action_abs,
         "charts/action_saturated": round.action_saturated,
         "charts/epsilon": learner.epsilon(),

@@ -146,6 +146,8 @@ pub struct EppoNet {
     /// Discrete: (C * A) values from h. Continuous: C values from (h, a).
     pub(super) critic: Head,
     pub(super) cost_critic: Head,
+    /// With `goal_recall_coef` > 0: the goal's position (2) from h.
+    pub(super) goal_recall: Option<Head>,
     n_critics: i64,
 }
 
@@ -174,6 +176,8 @@ impl EppoNet {
             actor: Head::new(&p / "actor", d, cfg.head_hidden, actor_out),
             critic: Head::new(&p / "critic", critic_in, cfg.head_hidden, critic_out),
             cost_critic: Head::new(&p / "cost_critic", critic_in, cfg.head_hidden, critic_out),
+            goal_recall: (cfg.goal_recall_coef > 0.0)
+                .then(|| Head::new(&p / "goal_recall", d, cfg.head_hidden, 2)),
             n_critics: cfg.n_critics,
         })
     }

@@ -191,6 +191,11 @@ pub(super) struct Batch {
     /// past an episode's end, since the budget binds each episode on its own
     /// (Eq. 6, 7): a violation charges only its own episode.
     pub(super) cost_bootstrap: Tensor,
+    /// (B, 2) each trajectory's goal position (relabelled where it was moved).
+    pub(super) goal: Tensor,
+    /// (B, L) 1 on real steps after the window's first success: the goal is
+    /// in the context there (the goal-recall loss).
+    pub(super) goal_known: Tensor,
     /// (B,) each sampled trajectory's violation g ([`Trajectory::violation`]).
     pub(super) violation: Vec<f32>,
 }
@@ -259,6 +264,7 @@ pub(super) fn make_batch(
     let mut td_valid = vec![0f32; b * l];
     let mut boot = vec![0f32; b * l];
     let mut cost_boot = vec![0f32; b * l];
+    let mut goal_known = vec![0f32; b * l];
     let zeros_a = vec![0f32; a];
     let zeros_o = vec![0f32; spec.obs_dim];
     for (j, (t, &(s, len))) in trajs.iter().zip(&windows).enumerate() {
@@ -268,6 +274,7 @@ pub(super) fn make_batch(
         } else {
             vec![0.0; t.len()]
         };
+        let mut found = false;
         for i in 0..l {
             let k = j * l + i;
             if i >= len {
@@ -325,6 +332,8 @@ pub(super) fn make_batch(
                 0.0
             };
             valid[k] = 1.0;
+            goal_known[k] = if found { 1.0 } else { 0.0 };
+            found |= t.terminated[step];
             let (has_target, bootstraps, cost_bootstraps) = td_masks(cfg, t, step, i + 1 < len);
             td_valid[k] = if has_target { 1.0 } else { 0.0 };
             boot[k] = if bootstraps { 1.0 } else { 0.0 };
@@ -352,6 +361,10 @@ pub(super) fn make_batch(
         td_valid: f(&td_valid),
         bootstrap: f(&boot),
         cost_bootstrap: f(&cost_boot),
+        goal: Tensor::from_slice(&trajs.iter().flat_map(|t| t.goal).collect::<Vec<f32>>())
+            .view([bi, 2])
+            .to_device(device),
+        goal_known: f(&goal_known),
         violation: trajs
             .iter()
             .map(|t| t.violation(cfg.violation_signal, cfg.lambda_target_rate))

@@ -10,7 +10,7 @@ use tch::{Device, Kind, Tensor};
 use safety_envs::{EnvName, EnvOptions, Orientation, VecEnv, make_env, sample_task, spawn_config};
 
 use super::collect::{Acting, EnvActions, Policy, sample_actions};
-use super::losses::{losses, n_step_targets, penalised_cost};
+use super::losses::{goal_recall_loss, losses, n_step_targets, penalised_cost};
 use super::net::{tanh_gaussian_log_prob, tanh_gaussian_sample};
 use super::replay::{Batch, make_batch, novel_arrivals};
 use super::*;
@@ -522,6 +522,54 @@ fn critic_losses_fall_on_a_fixed_batch() {
         last.1 < 0.3 * first.1 || last.1 < 1e-3,
         "cost value loss {first:?} -> {last:?}"
     );
+}
+
+/// The goal-recall loss is the squared recall error on the steps after the
+/// window's first success only, and it teaches the head (and the encoder)
+/// to read the goal off the context; without its weight there is no head.
+#[test]
+fn goal_recall_counts_only_steps_after_a_success_and_falls() {
+    assert!(tiny_learner(0).0.net.goal_recall.is_none());
+    let cfg = EppoConfig {
+        goal_recall_coef: 1.0,
+        ..tiny()
+    };
+    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+    let mut t = two_episode_trajectory();
+    t.goal = [5.0, 5.0];
+    t.terminated[1] = true; // found at step 1: known from step 2 on
+    t.actions = (0..5)
+        .flat_map(|s| (0..5).map(move |a| f32::from(u8::from(a == s))))
+        .collect(); // one-hot, SafeDarkRoom's 5 actions
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let mut batch = make_batch(&[&t], &cfg, &learner.spec, 0.0, &mut rng, Device::Cpu);
+    assert_eq!(to_vec(&batch.goal_known), [0.0, 0.0, 1.0, 1.0, 1.0]);
+    assert_eq!(to_vec(&batch.goal), [5.0, 5.0]);
+    let recall = |learner: &Learner, batch: &Batch| {
+        let h = learner.net.encode(&batch.tokens, false).unwrap();
+        let head = learner.net.goal_recall.as_ref().unwrap();
+        let per_step = to_vec(
+            &(head.forward(&h) - batch.goal.unsqueeze(1))
+                .square()
+                .sum_dim_intlist(-1, false, Kind::Float),
+        );
+        (goal_recall_loss(head, &h, batch), per_step)
+    };
+    let (loss, per_step) = recall(&learner, &batch);
+    let known_mean = per_step[2..].iter().sum::<f32>() / 3.0;
+    assert!((loss.double_value(&[]) as f32 - known_mean).abs() < 1e-4);
+    assert!(
+        per_step[..2].iter().all(|&e| e > 0.0),
+        "the unknown steps would count"
+    );
+    let first = loss.double_value(&[]);
+    for _ in 0..200 {
+        learner.opt.backward_step(&recall(&learner, &batch).0);
+    }
+    let last = recall(&learner, &batch).0.double_value(&[]);
+    assert!(last < 0.1 * first, "recall loss {first} -> {last}");
+    batch.goal_known = batch.goal_known.zeros_like();
+    assert_eq!(recall(&learner, &batch).0.double_value(&[]), 0.0);
 }
 
 #[test]
