@@ -9,7 +9,8 @@ use std::path::Path;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use safety_envs::{
-    Action, EnvError, EnvName, EnvOptions, Orientation, Space, make_env, sample_task, spawn_config,
+    Action, CmdpEnv, EnvError, EnvName, EnvOptions, Orientation, Space, StepOutcome, make_env,
+    sample_task, spawn_config,
 };
 
 use crate::stats::mean_se;
@@ -89,13 +90,39 @@ pub fn random_policy(
     episodes: usize,
     seed: u64,
 ) -> Result<ReturnCost, EnvError> {
-    let mut e = make_env(env, options)?;
+    let (mut ret, mut cost) = (0.0, 0.0);
+    random_rollouts(
+        make_env(env, options)?.as_mut(),
+        env,
+        episodes,
+        seed,
+        |_, out| {
+            ret += f64::from(out.reward);
+            cost += f64::from(out.cost);
+        },
+    )?;
+    let n = episodes.max(1) as f64;
+    Ok(ReturnCost {
+        episodic_return: ret / n,
+        episodic_cost: cost / n,
+    })
+}
+
+/// Runs a uniformly random policy in `e` for `episodes` episodes, one per
+/// centre-oriented (pretraining) task of `env` drawn from `seed`, and hands
+/// every step's observation and outcome to `on_step`.
+pub fn random_rollouts(
+    e: &mut dyn CmdpEnv,
+    env: EnvName,
+    episodes: usize,
+    seed: u64,
+    mut on_step: impl FnMut(&[f32], &StepOutcome),
+) -> Result<(), EnvError> {
     let spawn = spawn_config(env);
     let mut obs = vec![0.0; e.observation_space().flat_dim()];
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let space = e.action_space();
     let mut action = vec![0.0f32; space.flat_dim()];
-    let (mut ret, mut cost) = (0.0, 0.0);
     for i in 0..episodes {
         let task = sample_task(&spawn, Orientation::Centre, seed.wrapping_add(i as u64))?;
         e.set_task(&task)?;
@@ -112,18 +139,13 @@ pub fn random_policy(
                     e.step(Action::Continuous(&action), &mut obs)?
                 }
             };
-            ret += f64::from(out.reward);
-            cost += f64::from(out.cost);
+            on_step(&obs, &out);
             if out.done() {
                 break;
             }
         }
     }
-    let n = episodes.max(1) as f64;
-    Ok(ReturnCost {
-        episodic_return: ret / n,
-        episodic_cost: cost / n,
-    })
+    Ok(())
 }
 
 /// The last rounds of a training run, averaged for its progress line: one

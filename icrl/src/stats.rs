@@ -31,6 +31,30 @@ fn null_as_nan<'de, D: serde::Deserializer<'de>>(d: D) -> Result<f64, D::Error> 
     Ok(Option::<f64>::deserialize(d)?.unwrap_or(f64::NAN))
 }
 
+/// Per-column mean and (population) standard deviation of `rows`, each
+/// `dim` wide: the observation statistics both learners standardise with.
+pub fn column_mean_std<'a>(
+    rows: impl IntoIterator<Item = &'a [f32]>,
+    dim: usize,
+) -> (Vec<f32>, Vec<f32>) {
+    let (mut sum, mut sq, mut n) = (vec![0.0f64; dim], vec![0.0f64; dim], 0.0f64);
+    for row in rows {
+        for (i, &x) in row.iter().enumerate() {
+            sum[i] += f64::from(x);
+            sq[i] += f64::from(x).powi(2);
+        }
+        n += 1.0;
+    }
+    let n = n.max(1.0);
+    let mean: Vec<f32> = sum.iter().map(|s| (s / n) as f32).collect();
+    let std = sq
+        .iter()
+        .zip(&mean)
+        .map(|(s, &m)| (s / n - f64::from(m).powi(2)).max(0.0).sqrt() as f32)
+        .collect();
+    (mean, std)
+}
+
 /// Mean and standard error of `xs`; `None` for an empty sample.
 pub fn mean_se(xs: &[f64]) -> Option<MeanSe> {
     let n = xs.len();
@@ -61,5 +85,12 @@ mod tests {
         let one = mean_se(&[3.5]).unwrap();
         assert_eq!((one.mean, one.se), (3.5, 0.0));
         assert!(mean_se(&[]).is_none());
+    }
+
+    #[test]
+    fn column_statistics_of_fixed_rows() {
+        let rows = [[1.0f32, 5.0], [3.0, 5.0]];
+        let (mean, std) = column_mean_std(rows.iter().map(|r| &r[..]), 2);
+        assert_eq!((mean, std), (vec![2.0, 5.0], vec![1.0, 0.0]));
     }
 }

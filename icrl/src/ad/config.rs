@@ -295,29 +295,11 @@ pub(super) fn spec_for(data: &HistoryFile, dataset_path: &Path) -> AdSpec {
         None => (false, info.action_dim),
     };
     let o = info.obs_dim;
-    let mut sum = vec![0.0f64; o];
-    let mut sq = vec![0.0f64; o];
-    let mut n = 0.0f64;
-    for h in &data.histories {
-        for row in h.observations.chunks(o) {
-            for i in 0..o {
-                sum[i] += row[i] as f64;
-                sq[i] += (row[i] as f64).powi(2);
-            }
-            n += 1.0;
-        }
-    }
-    let mean: Vec<f32> = sum.iter().map(|s| (s / n.max(1.0)) as f32).collect();
-    let std: Vec<f32> = sq
-        .iter()
-        .zip(&mean)
-        .map(|(s, &m)| {
-            ((s / n.max(1.0) - (m as f64).powi(2))
-                .max(0.0)
-                .sqrt()
-                .max(1e-3)) as f32
-        })
-        .collect();
+    let (mean, std) = crate::stats::column_mean_std(
+        data.histories.iter().flat_map(|h| h.observations.chunks(o)),
+        o,
+    );
+    let std: Vec<f32> = std.into_iter().map(|s| s.max(1e-3)).collect();
     let pretrain_tasks = serde_json::from_str::<serde_json::Value>(&info.config)
         .ok()
         .and_then(|v| serde_json::from_value(v["pretrain_tasks"].clone()).ok());

@@ -186,6 +186,14 @@ pub struct EppoConfig {
     /// policy never reads it. 0: off (the paper).
     #[serde(default)]
     pub goal_recall_coef: f64,
+    /// Standardise the observation entries without finite bounds (Point and
+    /// Car: position, sensors) by the mean and standard deviation of a
+    /// random policy's observations on 20 pretraining tasks, frozen in the
+    /// checkpoint's spec. Raw, the accelerometer's spread (about 9) is 15
+    /// times the position's (0.6) that finding a goal turns on. AD
+    /// standardises with its dataset's statistics likewise. false: raw.
+    #[serde(default)]
+    pub standardise_observations: bool,
     /// The ladder's goal-conditioned rung: the goal's position appended to
     /// every observation (`safety_envs::GoalShown`), so reaching it needs no
     /// memory; its success against the shown-goal rung's separates driving

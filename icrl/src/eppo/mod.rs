@@ -122,6 +122,7 @@ pub use timing::{PhaseTimes, thread_cpu_seconds};
 
 use crate::checkpoint::{MetricsWriter, RunDir};
 use crate::optim::{Adam, AdamConfig};
+use crate::run_summary::random_rollouts;
 use collect::mean;
 use losses::{losses, polyak};
 use relabel::relabel_some;
@@ -162,8 +163,15 @@ impl Learner {
         if cfg.torch_threads > 0 {
             tch::set_num_threads(cfg.torch_threads);
         }
-        let probe = make_training_env(env, &cfg)?;
-        let spec = NetSpec::from_spaces(&probe.observation_space(), &probe.action_space())?;
+        let mut probe = make_training_env(env, &cfg)?;
+        let mut spec = NetSpec::from_spaces(&probe.observation_space(), &probe.action_space())?;
+        if cfg.standardise_observations {
+            let mut rows = Vec::new();
+            random_rollouts(probe.as_mut(), env, 20, cfg.seed, |obs, _| {
+                rows.extend_from_slice(obs)
+            })?;
+            spec.standardise_with(rows.chunks(spec.obs_dim));
+        }
         if cfg.scripted_first_episode && probe.goal_seeking_action().is_none() {
             return Err(EppoError::Config(format!(
                 "scripted_first_episode needs an environment with a scripted goal-seeking \

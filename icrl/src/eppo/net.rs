@@ -13,7 +13,7 @@ use crate::model::{KvCache, Transformer};
 use crate::tokens;
 
 /// What the networks read and emit, taken from the environment's spaces.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct NetSpec {
     /// Observation length.
     pub obs_dim: usize,
@@ -28,6 +28,13 @@ pub struct NetSpec {
     /// Continuous action bounds (empty for discrete).
     pub act_low: Vec<f32>,
     pub act_high: Vec<f32>,
+    /// With `standardise_observations`: per-entry mean and scale that map
+    /// the entries without finite bounds to (x - mean) / scale; empty:
+    /// those entries pass through unchanged.
+    #[serde(default)]
+    pub obs_mean: Vec<f32>,
+    #[serde(default)]
+    pub obs_scale: Vec<f32>,
 }
 
 impl NetSpec {
@@ -52,23 +59,43 @@ impl NetSpec {
             n_actions,
             act_low,
             act_high,
+            obs_mean: vec![],
+            obs_scale: vec![],
         })
+    }
+
+    /// Standardises the entries without finite bounds by the mean and
+    /// standard deviation of `rows` (a random policy's observations); an
+    /// entry that did not vary there is only centred.
+    pub fn standardise_with<'a>(&mut self, rows: impl IntoIterator<Item = &'a [f32]>) {
+        let (mean, std) = crate::stats::column_mean_std(rows, self.obs_dim);
+        self.obs_scale = std
+            .into_iter()
+            .map(|s| if s < 1e-3 { 1.0 } else { s })
+            .collect();
+        self.obs_mean = mean;
     }
 
     /// Checks that the bounds have one entry per dimension (a spec read from
     /// a file may not).
     pub fn check(&self) -> Result<(), String> {
         let act = self.n_actions.map_or(self.act_low.len(), |_| 0);
+        let stats = [0, self.obs_dim];
         if self.obs_low.len() != self.obs_dim
             || self.obs_high.len() != self.obs_dim
+            || !stats.contains(&self.obs_mean.len())
+            || self.obs_scale.len() != self.obs_mean.len()
+            || self.obs_scale.iter().any(|&s| !(s.is_finite() && s > 0.0))
             || self.act_high.len() != act
             || self.n_actions == Some(0)
         {
             return Err(format!(
-                "spec sizes disagree: obs_dim {} with {} and {} bounds, {:?} discrete actions, {} and {} action bounds",
+                "spec sizes disagree: obs_dim {} with {} and {} bounds, {} means and {} scales (positive), {:?} discrete actions, {} and {} action bounds",
                 self.obs_dim,
                 self.obs_low.len(),
                 self.obs_high.len(),
+                self.obs_mean.len(),
+                self.obs_scale.len(),
                 self.n_actions,
                 self.act_low.len(),
                 self.act_high.len()
@@ -88,12 +115,15 @@ impl NetSpec {
         tokens::token_dim(self.obs_dim, self.act_flat(), 1)
     }
 
-    /// Observation mapped to [-1, 1] where the bounds are finite.
+    /// Observation mapped to [-1, 1] where the bounds are finite, and
+    /// standardised elsewhere when the spec has statistics.
     pub(super) fn normalise_obs(&self, obs: &[f32], out: &mut Vec<f32>) {
         for (i, &x) in obs.iter().enumerate() {
             let (lo, hi) = (self.obs_low[i], self.obs_high[i]);
             if lo.is_finite() && hi.is_finite() && hi > lo {
                 out.push(2.0 * (x - lo) / (hi - lo) - 1.0);
+            } else if let (Some(m), Some(s)) = (self.obs_mean.get(i), self.obs_scale.get(i)) {
+                out.push((x - m) / s);
             } else {
                 out.push(x);
             }

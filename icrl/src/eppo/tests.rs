@@ -463,6 +463,7 @@ fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
         n_actions: Some(5),
         act_low: vec![],
         act_high: vec![],
+        ..Default::default()
     };
     let cfg = tiny();
     let batch = |w: f32| {
@@ -792,6 +793,7 @@ fn terminated_and_truncated_reach_the_targets_apart() {
         n_actions: Some(2),
         act_low: vec![],
         act_high: vec![],
+        ..Default::default()
     };
     // Episode 0: 2 steps, truncated at 0.9. Episode 1: 2 steps,
     // terminated at the goal, 1.0.
@@ -945,6 +947,7 @@ fn continuous_shapes_and_gradients() {
         n_actions: None,
         act_low: vec![-1.0, -1.0],
         act_high: vec![1.0, 1.0],
+        ..Default::default()
     };
     let vs = nn::VarStore::new(Device::Cpu);
     let net = EppoNet::new(vs.root(), &cfg, &spec).unwrap();
@@ -1146,6 +1149,40 @@ fn n_step_targets_sum_rewards_until_the_bootstrap_stops() {
     // 1: 0 + g y(1)_2 = g (1 + g 30) = 8; 2: 1 + g V'_3 (step 3 has no target) = 1 + 15.
     assert_eq!(y2[1], 8.0);
     assert_eq!(y2[2], 16.0);
+}
+
+/// Standardised observations: the entries without finite bounds are
+/// centred and scaled by a random policy's statistics (the accelerometer's
+/// spread of about 9 comes to 1), the bounded ones keep their [-1, 1] map,
+/// the statistics ride in the checkpoint's spec, and the run is the same
+/// under its seed.
+#[test]
+fn standardised_observations_come_from_a_random_policy_and_stay_fixed() {
+    let mut cfg = EppoConfig {
+        standardise_observations: true,
+        physics_steps_per_action: Some(50),
+        max_episode_steps: 75,
+        ..tiny()
+    };
+    cfg.model.max_len = 150;
+    let learner = Learner::new(cfg.clone(), EnvName::Point).unwrap();
+    let spec = &learner.spec;
+    assert_eq!(spec.obs_mean.len(), 23);
+    spec.check().unwrap();
+    assert!((spec.obs_mean[13] - 9.81).abs() < 0.01, "gravity, constant");
+    assert_eq!(spec.obs_scale[13], 1.0, "a constant entry is only centred");
+    assert!(spec.obs_scale[12] > 3.0, "the accelerometer's spread");
+    let mut obs = vec![0.0f32; 23];
+    obs[12] = spec.obs_mean[12] + spec.obs_scale[12];
+    obs[13] = 9.81;
+    obs[2] = 1.0; // a rotation entry: bounded, mapped to [-1, 1] as before
+    let mut out = Vec::new();
+    spec.normalise_obs(&obs, &mut out);
+    assert!((out[12] - 1.0).abs() < 1e-5 && out[13].abs() < 0.01 && out[2] == 1.0);
+    let again = Learner::new(cfg, EnvName::Point).unwrap();
+    assert_eq!(again.spec, learner.spec, "deterministic under the seed");
+    let plain = Learner::new(tiny(), EnvName::DarkRoom).unwrap();
+    assert!(plain.spec.obs_mean.is_empty(), "off: raw as before");
 }
 
 /// The goal-conditioned rung: every collected observation ends with the
