@@ -56,9 +56,12 @@
 //! help (results/eppo_point_ladder): hindsight task relabelling of replayed
 //! trajectories (`relabel_prob`, `relabel.rs`), a dense reward for the
 //! critics only (`dense_reward_coef`; tokens stay sparse), a scripted first
-//! episode that shows the goal (`scripted_first_episode`) and, as a
-//! diagnostic never evaluated, the goal in the observation
-//! (`goal_in_observation`: driving to a position without recalling it).
+//! episode that shows the goal (`scripted_first_episode`), an auxiliary loss
+//! that reads the found goal off the trajectory encoding
+//! (`goal_recall_coef`), observations standardised by a random policy's
+//! statistics (`standardise_observations`) and, as a diagnostic never
+//! evaluated, the goal in the observation (`goal_in_observation`: driving to
+//! a position without recalling it).
 //!
 //! Levers for the budget ladder (results/eppo_darkroom_budget), likewise off
 //! until measured: behaviour noise capped once a trajectory has found its goal
