@@ -29,6 +29,7 @@ impl Learner {
         let state = TrainState {
             lambda: self.multiplier.lambda,
             multiplier: Some(self.multiplier),
+            entropy_coef: Some(self.entropy_coef),
             updates: self.updates,
             env_steps: self.env_steps,
             rng_seed: self.rng.get_seed(),
@@ -140,6 +141,11 @@ impl Learner {
         learner.multiplier = state
             .multiplier
             .unwrap_or_else(|| Multiplier::new(state.lambda));
+        // A tuned weight goes on from where it was; a fixed one is the
+        // config's, so that a fork can change it.
+        if learner.cfg.target_entropy.is_some() {
+            learner.entropy_coef = state.entropy_coef.unwrap_or(learner.cfg.entropy_coef);
+        }
         learner.updates = state.updates;
         learner.env_steps = state.env_steps;
         // Checkpoints from before tasks were recorded restart the count.
@@ -176,6 +182,9 @@ pub(super) struct TrainState {
     /// The multiplier's whole state (absent in older checkpoints).
     #[serde(default)]
     pub(super) multiplier: Option<Multiplier>,
+    /// The entropy weight (absent in checkpoints from before it was tuned).
+    #[serde(default)]
+    pub(super) entropy_coef: Option<f64>,
     pub(super) updates: u64,
     pub(super) env_steps: u64,
     pub(super) rng_seed: [u8; 32],

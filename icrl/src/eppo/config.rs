@@ -109,8 +109,21 @@ pub struct EppoConfig {
     pub lambda_smoothing: f64,
     /// Weight of the critic losses against the actor loss.
     pub critic_weight: f64,
-    /// Entropy bonus weight in the actor loss.
+    /// Entropy bonus weight in the actor loss (the starting weight with
+    /// `target_entropy`).
     pub entropy_coef: f64,
+    /// SAC's automatic temperature: after every update the entropy weight
+    /// moves in log space by `entropy_coef_lr` x (target - the batch's policy
+    /// entropy), so the entropy tracks this target (nats, tanh-corrected for
+    /// continuous actions; SAC uses -|A|). A fixed weight lets a continuous
+    /// actor's mean run into tanh's saturation, where its gradient vanishes
+    /// and the policy collapses onto the action bounds (results/
+    /// eppo_point_ladder, rung rg2). Absent: `entropy_coef` stays fixed.
+    #[serde(default)]
+    pub target_entropy: Option<f64>,
+    /// Step size of the entropy weight's log-space update.
+    #[serde(default = "default_entropy_coef_lr")]
+    pub entropy_coef_lr: f64,
     /// Weight of AMAGO's filtered behaviour cloning in the actor loss:
     /// -1[A(h_t, a_t) > 0] log pi(a_t | h_t) on the replayed actions, with
     /// A = Q(h_t, a_t) - E_pi Q(h_t, .) from the reward critics (mean over
@@ -308,6 +321,10 @@ fn default_lambda_smoothing() -> f64 {
     0.9
 }
 
+fn default_entropy_coef_lr() -> f64 {
+    0.003
+}
+
 /// Absent from a config: one-step TD targets (the paper's).
 fn default_n_step() -> usize {
     1
@@ -397,6 +414,7 @@ impl EppoConfig {
             ("lambda_init", self.lambda_init, Range::NON_NEGATIVE),
             ("critic_weight", self.critic_weight, Range::POSITIVE),
             ("entropy_coef", self.entropy_coef, Range::NON_NEGATIVE),
+            ("entropy_coef_lr", self.entropy_coef_lr, Range::NON_NEGATIVE),
             ("bc_coef", self.bc_coef, Range::NON_NEGATIVE),
             // Scaled rewards go into float32 tokens: keep them far from overflow.
             (
@@ -429,6 +447,15 @@ impl EppoConfig {
             ("novelty_cell", self.novelty_cell, Range::POSITIVE),
         ])
         .or_else(bad)?;
+        if let Some(t) = self.target_entropy
+            && !(t.is_finite() && self.entropy_coef > 0.0)
+        {
+            return bad(format!(
+                "target_entropy = {t} needs a finite target and a positive starting \
+                 entropy_coef (got {}): the weight moves in log space",
+                self.entropy_coef
+            ));
+        }
         if let Some(r) = self.replay_ratio
             && !(r.is_finite() && r > 0.0)
         {

@@ -71,12 +71,15 @@ pub(super) fn n_step_targets(
     y
 }
 
-/// The three losses on one batch (before any step), and the policy entropy.
+/// The three losses on one batch (before any step), and the policy entropy;
+/// `lambda` prices the cost, `entropy_coef` weighs the entropy bonus (both
+/// the learner's current values).
 pub(super) fn losses(
     net: &EppoNet,
     target: &EppoNet,
     batch: &Batch,
     lambda: f64,
+    entropy_coef: f64,
     cfg: &EppoConfig,
 ) -> Result<(Tensor, Tensor, Tensor, Tensor, LossDiagnostics), EppoError> {
     let h = net.encode(&batch.tokens, true)?; // (B, L, D)
@@ -84,8 +87,8 @@ pub(super) fn losses(
     let (y, yc) = td_targets(net, target, batch, cfg)?; // (B, L) each
     let td_mask = batch.td_valid.unsqueeze(-1); // (B, L, 1)
     let actor = match net.spec.n_actions {
-        Some(_) => discrete_actor(net, &h, batch, lambda, cfg),
-        None => continuous_actor(net, &h, batch, lambda, cfg),
+        Some(_) => discrete_actor(net, &h, batch, lambda, entropy_coef, cfg),
+        None => continuous_actor(net, &h, batch, lambda, entropy_coef, cfg),
     };
     let diagnostics = LossDiagnostics {
         q_mean: masked_mean(
@@ -204,6 +207,7 @@ fn discrete_actor(
     h: &Tensor,
     batch: &Batch,
     lambda: f64,
+    entropy_coef: f64,
     cfg: &EppoConfig,
 ) -> ActorTerms {
     let q_all = net.critic_values(&net.critic, h, false); // (B, L, C, A)
@@ -231,7 +235,7 @@ fn discrete_actor(
     let per_action = q.neg() + paid * penalty; // (B, L, A)
     let entropy = (&pi * &logp).sum_dim_intlist(-1, false, Kind::Float).neg(); // (B, L)
     let mut objective =
-        (&pi * per_action).sum_dim_intlist(-1, false, Kind::Float) - &entropy * cfg.entropy_coef;
+        (&pi * per_action).sum_dim_intlist(-1, false, Kind::Float) - &entropy * entropy_coef;
     if cfg.bc_coef > 0.0 {
         // Filtered BC: A = Q(a_t) - sum_a pi(a) Q(a), mean over critics.
         let q_mean = q_all.detach().mean_dim(2, false, Kind::Float); // (B, L, A)
@@ -258,6 +262,7 @@ fn continuous_actor(
     h: &Tensor,
     batch: &Batch,
     lambda: f64,
+    entropy_coef: f64,
     cfg: &EppoConfig,
 ) -> ActorTerms {
     let q_taken = net.critic_sa(&net.critic, h, &batch.actions, false); // (B, L, C)
@@ -279,7 +284,7 @@ fn continuous_actor(
         .mean_dim(-1, false, Kind::Float); // (B, L)
     let penalty = lambda * cfg.reward_scale;
     let paid = penalised_cost(&qc, &batch.violated, &batch.ctg, cfg.penalty); // (B, L)
-    let mut objective = q.neg() + paid * penalty + &log_prob * cfg.entropy_coef;
+    let mut objective = q.neg() + paid * penalty + &log_prob * entropy_coef;
     if cfg.bc_coef > 0.0 {
         // Filtered BC: A = Q(a_t) - Q(a_hat) (one sample of E_pi),
         // mean over critics, no gradient anywhere in the filter.
@@ -314,6 +319,13 @@ pub(super) fn penalised_cost(
         PenaltyForm::Hindsight => qc * violated,
         PenaltyForm::Hinge => (qc - ctg).relu(),
     }
+}
+
+/// SAC's temperature step in log space: the weight rises while the policy's
+/// entropy is below `target` and falls while above it.
+pub(super) fn tuned_entropy_coef(coef: f64, entropy: f64, target: f64, lr: f64) -> f64 {
+    // Kept inside [1e-8, 1e3] so that one bad batch cannot zero or explode it.
+    (coef.ln() + lr * (target - entropy)).exp().clamp(1e-8, 1e3)
 }
 
 /// Eq. (7): lambda <- clip(lambda + eta * mean_j max_k (C_jk - delta_j), 0, lambda_max).

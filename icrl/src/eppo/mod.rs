@@ -59,7 +59,9 @@
 //! episode that shows the goal (`scripted_first_episode`), an auxiliary loss
 //! that reads the found goal off the trajectory encoding
 //! (`goal_recall_coef`), observations standardised by a random policy's
-//! statistics (`standardise_observations`) and, as a diagnostic never
+//! statistics (`standardise_observations`), SAC's automatic temperature
+//! (`target_entropy`: the entropy weight tuned so that a continuous actor
+//! cannot collapse onto its action bounds) and, as a diagnostic never
 //! evaluated, the goal in the observation (`goal_in_observation`: driving to
 //! a position without recalling it).
 //!
@@ -77,7 +79,7 @@
 //! `first_episode_cost`, `last_episode_cost` (per trajectory, averaged: the
 //! in-context signal), `discovery_rate` and `revisit_rate` (P(goal at episode
 //! k > 1 | not found / found earlier in the trajectory)), `found_goal`
-//! (fraction of trajectories that found it), `lambda`, `losses/value_loss`, `losses/cost_value_loss`,
+//! (fraction of trajectories that found it), `lambda`, `entropy_coef`, `losses/value_loss`, `losses/cost_value_loss`,
 //! `losses/policy_loss`, `losses/entropy`, `losses/grad_norm`,
 //! `losses/goal_recall` (NaN without the head), `charts/epsilon`,
 //! `charts/updates_per_s`, `charts/env_steps_per_s`, `charts/cpu_learner` and
@@ -127,7 +129,7 @@ use crate::checkpoint::{MetricsWriter, RunDir};
 use crate::optim::{Adam, AdamConfig};
 use crate::run_summary::random_rollouts;
 use collect::mean;
-use losses::{losses, polyak};
+use losses::{losses, polyak, tuned_entropy_coef};
 use relabel::relabel_some;
 use replay::make_batch;
 
@@ -144,6 +146,9 @@ pub struct Learner {
     pub opt: Adam,
     /// The cost multiplier lambda and its PID state (`multiplier.rs`).
     pub multiplier: Multiplier,
+    /// The entropy bonus's weight: `entropy_coef`, tuned toward
+    /// `target_entropy` where one is set.
+    pub entropy_coef: f64,
     pub updates: u64,
     pub env_steps: u64,
     /// Pretraining tasks drawn so far: task i comes from
@@ -206,6 +211,7 @@ impl Learner {
             rng: ChaCha8Rng::seed_from_u64(cfg.seed),
             replay: Replay::new(cfg.replay_capacity),
             multiplier: Multiplier::new(cfg.lambda_init),
+            entropy_coef: cfg.entropy_coef,
             updates: 0,
             env_steps: 0,
             tasks_drawn: 0,
@@ -249,7 +255,7 @@ impl Learner {
             .map(|(&t, r)| r.as_ref().unwrap_or(t))
             .collect();
         let novelty = self.cfg.novelty_weight(self.updates) as f32;
-        let mut batch = make_batch(
+        let batch = make_batch(
             &trajs,
             &self.cfg,
             &self.spec,
@@ -259,7 +265,7 @@ impl Learner {
         );
         // The multiplier prices the costs the policy really paid: a
         // relabelled episode cut at its new goal holds only part of them.
-        batch.violation = sampled
+        let violations: Vec<f32> = sampled
             .iter()
             .map(|t| t.violation(self.cfg.violation_signal, self.cfg.lambda_target_rate))
             .collect();
@@ -269,6 +275,7 @@ impl Learner {
             &self.target,
             &batch,
             self.multiplier.lambda,
+            self.entropy_coef,
             &self.cfg,
         )?;
         let mut loss = (&lv + &lc) * self.cfg.critic_weight + &lp;
@@ -294,7 +301,16 @@ impl Learner {
         self.times.optimizer += lap(&mut clock);
         if self.updates >= self.cfg.lambda_warmup_updates {
             self.multiplier
-                .update(&batch.violation, &self.cfg.multiplier_gains());
+                .update(&violations, &self.cfg.multiplier_gains());
+        }
+        let entropy_now = entropy.double_value(&[]);
+        if let Some(target) = self.cfg.target_entropy {
+            self.entropy_coef = tuned_entropy_coef(
+                self.entropy_coef,
+                entropy_now,
+                target,
+                self.cfg.entropy_coef_lr,
+            );
         }
         polyak(&self.target_vs, &self.vs, self.cfg.tau);
         self.updates += 1;
@@ -302,7 +318,7 @@ impl Learner {
             value_loss: lv.double_value(&[]),
             cost_value_loss: lc.double_value(&[]),
             policy_loss: lp.double_value(&[]),
-            entropy: entropy.double_value(&[]),
+            entropy: entropy_now,
             grad_norm,
             lambda: self.multiplier.lambda,
             q_mean: diag.q_mean.double_value(&[]),
@@ -661,6 +677,7 @@ fn round_record(
         "revisit_rate": round.revisit_rate,
         "found_goal": round.found,
         "lambda": learner.multiplier.lambda,
+        "entropy_coef": learner.entropy_coef,
         "losses/value_loss": avg(|s| s.value_loss),
         "losses/cost_value_loss": avg(|s| s.cost_value_loss),
         "losses/policy_loss": avg(|s| s.policy_loss),

@@ -196,8 +196,6 @@ pub(super) struct Batch {
     /// (B, L) 1 on real steps after the window's first success: the goal is
     /// in the context there (the goal-recall loss).
     pub(super) goal_known: Tensor,
-    /// (B,) each sampled trajectory's violation g ([`Trajectory::violation`]).
-    pub(super) violation: Vec<f32>,
 }
 
 /// The critics' pretraining-only dense reward for step `step` of `t`:
@@ -365,10 +363,6 @@ pub(super) fn make_batch(
             .view([bi, 2])
             .to_device(device),
         goal_known: f(&goal_known),
-        violation: trajs
-            .iter()
-            .map(|t| t.violation(cfg.violation_signal, cfg.lambda_target_rate))
-            .collect(),
     }
 }
 

@@ -10,7 +10,7 @@ use tch::{Device, Kind, Tensor};
 use safety_envs::{EnvName, EnvOptions, Orientation, VecEnv, make_env, sample_task, spawn_config};
 
 use super::collect::{Acting, EnvActions, Policy, sample_actions};
-use super::losses::{goal_recall_loss, losses, n_step_targets, penalised_cost};
+use super::losses::{goal_recall_loss, losses, n_step_targets, penalised_cost, tuned_entropy_coef};
 use super::net::{tanh_gaussian_log_prob, tanh_gaussian_sample};
 use super::replay::{Batch, make_batch, novel_arrivals};
 use super::*;
@@ -510,8 +510,15 @@ fn critic_losses_fall_on_a_fixed_batch() {
     let mut first = None;
     let mut last = (0.0, 0.0);
     for _ in 0..300 {
-        let (lv, lc, ..) =
-            losses(&learner.net, &learner.target, &batch, 0.0, &learner.cfg).unwrap();
+        let (lv, lc, ..) = losses(
+            &learner.net,
+            &learner.target,
+            &batch,
+            0.0,
+            learner.cfg.entropy_coef,
+            &learner.cfg,
+        )
+        .unwrap();
         let now = (lv.double_value(&[]), lc.double_value(&[]));
         first.get_or_insert(now);
         last = now;
@@ -659,6 +666,57 @@ fn lambda_rises_falls_and_respects_the_cap() {
     assert_eq!(t.max_violation(), 3.0);
 }
 
+/// SAC's temperature: the entropy weight rises while the policy's entropy is
+/// below its target and falls while above, stays fixed without a target, is
+/// logged, and a resumed run goes on from the checkpoint's weight.
+#[test]
+fn the_entropy_weight_tracks_its_target() {
+    assert!(tuned_entropy_coef(0.1, -3.0, -2.0, 0.01) > 0.1);
+    assert!(tuned_entropy_coef(0.1, -1.0, -2.0, 0.01) < 0.1);
+    assert!((tuned_entropy_coef(0.1, -2.0, -2.0, 0.01) - 0.1).abs() < 1e-12);
+    let start = tiny().entropy_coef;
+    // Five discrete actions hold at most ln 5 = 1.61 nats and at least 0.
+    let after_updates = |target: Option<f64>| {
+        let (mut learner, mut venv) = tiny_learner(3);
+        learner.cfg.target_entropy = target;
+        learner.cfg.entropy_coef_lr = 0.1;
+        learner.collect(&mut venv).unwrap();
+        for _ in 0..3 {
+            learner.update().unwrap();
+        }
+        learner.entropy_coef
+    };
+    assert!(
+        after_updates(Some(5.0)) > start * 1.2,
+        "below target: rises"
+    );
+    assert!(
+        after_updates(Some(-1.0)) < start / 1.2,
+        "above target: falls"
+    );
+    assert_eq!(after_updates(None), start, "no target: fixed");
+
+    let out = std::env::temp_dir().join(format!("icrl-eppo-alpha-{}", std::process::id()));
+    let mut cfg = tiny();
+    cfg.target_entropy = Some(5.0);
+    cfg.entropy_coef_lr = 0.1;
+    let report = train(&PretrainOptions {
+        env: EnvName::DarkRoom,
+        cfg: cfg.clone(),
+        out: out.clone(),
+        resume: None,
+        progress: false,
+    })
+    .unwrap();
+    let lines = std::fs::read_to_string(report.run_dir.join("metrics.jsonl")).unwrap();
+    let last: serde_json::Value = serde_json::from_str(lines.lines().last().unwrap()).unwrap();
+    let logged = last["entropy_coef"].as_f64().unwrap();
+    assert!(logged > start, "{logged}");
+    let resumed = Learner::resume(cfg, EnvName::DarkRoom, &report.last_checkpoint).unwrap();
+    assert!((resumed.entropy_coef - logged).abs() < 1e-12);
+    std::fs::remove_dir_all(&out).unwrap();
+}
+
 /// The late-rate signal counts only episodes k > K/2 and subtracts its
 /// target, so blind early episodes cannot hold lambda up, and a trajectory
 /// whose later episodes keep the budget pulls lambda down.
@@ -719,8 +777,15 @@ fn penalty_probe(form: PenaltyForm) -> (Learner, Batch) {
 /// Lp on `batch` with multiplier `lambda`, the same libtorch draws each call.
 fn policy_loss_at(learner: &Learner, batch: &Batch, lambda: f64) -> f64 {
     tch::manual_seed(0);
-    let (_, _, lp, ..) =
-        losses(&learner.net, &learner.target, batch, lambda, &learner.cfg).unwrap();
+    let (_, _, lp, ..) = losses(
+        &learner.net,
+        &learner.target,
+        batch,
+        lambda,
+        learner.cfg.entropy_coef,
+        &learner.cfg,
+    )
+    .unwrap();
     lp.double_value(&[])
 }
 
@@ -976,7 +1041,7 @@ fn continuous_shapes_and_gradients() {
     let batch = make_batch(&[&t, &t], &cfg, &spec, 0.0, &mut rng, Device::Cpu);
     assert_eq!(batch.tokens.size(), vec![2, 5, 3 + 3 + 2 + 4]);
     assert_eq!(batch.actions.size(), vec![2, 5, 2]);
-    let (lv, lc, lp, ..) = losses(&net, &target, &batch, 1.0, &cfg).unwrap();
+    let (lv, lc, lp, ..) = losses(&net, &target, &batch, 1.0, cfg.entropy_coef, &cfg).unwrap();
     let mut opt = Adam::new(
         &vs,
         AdamConfig {
@@ -1008,7 +1073,7 @@ fn continuous_shapes_and_gradients() {
             .double_value(&[])
             > 0.0
     );
-    let (lv2, lc2, lp2, ..) = losses(&net, &target, &batch, 1.0, &cfg).unwrap();
+    let (lv2, lc2, lp2, ..) = losses(&net, &target, &batch, 1.0, cfg.entropy_coef, &cfg).unwrap();
     assert!(opt.backward_step(&(lv2 + lc2 + lp2)) > 0.0);
     assert!(lv.double_value(&[]).is_finite() && lc.double_value(&[]).is_finite());
     // Acting: actions land inside the box.
@@ -1099,9 +1164,10 @@ fn filtered_bc_raises_the_log_prob_of_kept_replayed_actions() {
             let mut with = cfg.clone();
             with.bc_coef = 1.0;
             tch::manual_seed(0);
-            let (_, _, a, ..) = losses(&net, &target, &batch, 0.0, &with).unwrap();
+            let (_, _, a, ..) =
+                losses(&net, &target, &batch, 0.0, with.entropy_coef, &with).unwrap();
             tch::manual_seed(0);
-            let (_, _, b, ..) = losses(&net, &target, &batch, 0.0, &cfg).unwrap();
+            let (_, _, b, ..) = losses(&net, &target, &batch, 0.0, cfg.entropy_coef, &cfg).unwrap();
             a - b
         };
         let first = bc_term().double_value(&[]);
