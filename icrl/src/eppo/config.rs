@@ -124,6 +124,12 @@ pub struct EppoConfig {
     /// Step size of the entropy weight's log-space update.
     #[serde(default = "default_entropy_coef_lr")]
     pub entropy_coef_lr: f64,
+    /// The actor reads a detached trajectory encoding, so that only the
+    /// critics' losses shape the shared transformer (SAC-AE and DrQ stop the
+    /// actor's gradient at the encoder for stability). false: the paper's and
+    /// AMAGO's shared encoder, trained by the actor's loss too.
+    #[serde(default)]
+    pub actor_detach_encoder: bool,
     /// Weight of AMAGO's filtered behaviour cloning in the actor loss:
     /// -1[A(h_t, a_t) > 0] log pi(a_t | h_t) on the replayed actions, with
     /// A = Q(h_t, a_t) - E_pi Q(h_t, .) from the reward critics (mean over

@@ -200,6 +200,15 @@ struct ActorTerms {
     log_std_mean: Option<Tensor>,
 }
 
+/// The encoding the actor reads: detached with `actor_detach_encoder`.
+fn actor_input(h: &Tensor, cfg: &EppoConfig) -> Tensor {
+    if cfg.actor_detach_encoder {
+        h.detach()
+    } else {
+        h.shallow_clone()
+    }
+}
+
 /// Discrete actions: Lp as the expectation of -Q + lambda v_e Qc under the
 /// actor's own distribution, minus the entropy bonus, plus filtered BC.
 fn discrete_actor(
@@ -220,7 +229,7 @@ fn discrete_actor(
     let qc_taken = qc_all.gather(3, &idx, false).squeeze_dim(3); // (B, L, C)
     // Actor: expectation of -Q + lambda v_e Qc under its own distribution;
     // critic values are constants here (detached).
-    let logits = net.actor.forward(h); // (B, L, A)
+    let logits = net.actor.forward(&actor_input(h, cfg)); // (B, L, A)
     let logp = logits.log_softmax(-1, Kind::Float);
     let pi = logp.exp();
     let q = q_all.detach().amin(2, false); // (B, L, A)
@@ -267,7 +276,7 @@ fn continuous_actor(
 ) -> ActorTerms {
     let q_taken = net.critic_sa(&net.critic, h, &batch.actions, false); // (B, L, C)
     let qc_taken = net.critic_sa(&net.cost_critic, h, &batch.actions, false); // (B, L, C)
-    let (mean, log_std) = net.gaussian(h);
+    let (mean, log_std) = net.gaussian(&actor_input(h, cfg));
     let log_std_mean = Some(masked_mean(
         &log_std.detach().mean_dim(-1, false, Kind::Float),
         &batch.valid,

@@ -61,7 +61,9 @@
 //! (`goal_recall_coef`), observations standardised by a random policy's
 //! statistics (`standardise_observations`), SAC's automatic temperature
 //! (`target_entropy`: the entropy weight tuned so that a continuous actor
-//! cannot collapse onto its action bounds) and, as a diagnostic never
+//! cannot collapse onto its action bounds), an actor that reads a detached
+//! trajectory encoding (`actor_detach_encoder`: only the critics shape the
+//! shared transformer) and, as a diagnostic never
 //! evaluated, the goal in the observation (`goal_in_observation`: driving to
 //! a position without recalling it).
 //!

@@ -1073,6 +1073,27 @@ fn continuous_shapes_and_gradients() {
             .double_value(&[])
             > 0.0
     );
+    let grad_sum = |name: &str| {
+        let g = vs.variables()[name].grad();
+        if g.defined() {
+            g.abs().sum(Kind::Float).double_value(&[])
+        } else {
+            0.0
+        }
+    };
+    assert!(
+        grad_sum("enc_1.weight") > 0.0,
+        "shared: Lp reaches the encoder"
+    );
+    // With the encoder detached for the actor, Lp moves the actor alone.
+    let mut detached = cfg.clone();
+    detached.actor_detach_encoder = true;
+    opt.zero_grad();
+    let (_, _, lp_detached, ..) =
+        losses(&net, &target, &batch, 1.0, cfg.entropy_coef, &detached).unwrap();
+    lp_detached.backward();
+    assert_eq!(grad_sum("enc_1.weight"), 0.0);
+    assert!(grad_sum("actor.l1.weight") > 0.0);
     let (lv2, lc2, lp2, ..) = losses(&net, &target, &batch, 1.0, cfg.entropy_coef, &cfg).unwrap();
     assert!(opt.backward_step(&(lv2 + lc2 + lp2)) > 0.0);
     assert!(lv.double_value(&[]).is_finite() && lc.double_value(&[]).is_finite());
