@@ -1,0 +1,16 @@
+import json,sys,math
+# Means of a run's training metrics over windows of updates.
+# usage: python3 windows.py metrics.jsonl [window_updates (200)]
+path=sys.argv[1]; w=int(sys.argv[2]) if len(sys.argv)>2 else 200
+recs=[json.loads(l) for l in open(path)]
+keys=['revisit_rate','episodic_return','last_episode_return','episodic_cost','losses/q_mean','charts/action_saturated','losses/entropy','entropy_coef','lambda']
+print('upd_to  env_steps '+' '.join(k.split('/')[-1][:9].rjust(9) for k in keys))
+b=0
+while b < recs[-1]['updates']:
+    ch=[r for r in recs if b < r['updates'] <= b+w]
+    b+=w
+    if not ch: continue
+    def m(k):
+        v=[r.get(k) for r in ch if isinstance(r.get(k),(int,float)) and not math.isnan(r.get(k))]
+        return sum(v)/len(v) if v else float('nan')
+    print(f"{ch[-1]['updates']:6d} {ch[-1]['env_steps']:9d} "+' '.join(f"{m(k):9.3f}" for k in keys))
