@@ -40,6 +40,9 @@ pub(crate) fn tiny() -> EppoConfig {
         "updates_per_round=2",
         "learning_starts=0",
         "checkpoint_every=2",
+        // Tests run the synchronous loop; its overlapped twin has its own.
+        "overlap=false",
+        "learner_threads=0",
     ]
     .map(String::from);
     crate::presets::apply_overrides(&mut table, &sets).unwrap();
