@@ -81,8 +81,8 @@
 //! `first_episode_cost`, `last_episode_cost` (per trajectory, averaged: the
 //! in-context signal), `discovery_rate` and `revisit_rate` (P(goal at episode
 //! k > 1 | not found / found earlier in the trajectory)), `found_goal`
-//! (fraction of trajectories that found it), `lambda`, `entropy_coef`, `losses/value_loss`, `losses/cost_value_loss`,
-//! `losses/policy_loss`, `losses/entropy`, `losses/grad_norm`,
+//! (fraction of trajectories that found it), `lambda`, `entropy_coef`,
+//! `losses/value_loss`, `losses/cost_value_loss`, `losses/policy_loss`, `losses/entropy`, `losses/grad_norm`,
 //! `losses/goal_recall` (NaN without the head), `charts/epsilon`,
 //! `charts/updates_per_s`, `charts/env_steps_per_s`, `charts/cpu_learner` and
 //! (overlapped) `charts/cpu_actor` (the share of a core each thread kept busy
