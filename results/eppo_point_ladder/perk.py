@@ -1,0 +1,18 @@
+"""Per-episode summary of an `icrl eval` JSON: return, cost, revisit, discovery
+and found-by for each episode index k (means over tasks x budgets).
+
+    python3 perk.py EVAL_DIR/eppo_LABEL_point.json
+"""
+import json
+import sys
+
+summary = json.load(open(sys.argv[1]))["summary"]["per_episode"]
+keys = ["ret", "cost", "revisit", "discovery", "found_by"]
+print("k  " + "  ".join(f"{k:>9}" for k in keys))
+for k, row in enumerate(summary, start=1):
+    cells = []
+    for key in keys:
+        v = row.get(key)
+        mean = v.get("mean") if isinstance(v, dict) else v
+        cells.append(f"{mean:9.3f}" if isinstance(mean, (int, float)) else f"{'-':>9}")
+    print(f"{k:<2} " + "  ".join(cells))
