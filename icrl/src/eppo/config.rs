@@ -227,6 +227,14 @@ pub struct EppoConfig {
     /// everything at evaluation, stay sparse. 0: off (the paper).
     #[serde(default)]
     pub dense_reward_coef: f64,
+    /// Pay `dense_reward_coef` only on steps whose context already holds a
+    /// success (the goal found earlier in the window). Before that the goal
+    /// is unknown to the agent, so progress toward it is noise the history
+    /// cannot predict, and a critic paid for it drifts toward the centre of
+    /// the pretraining goals instead of searching (rung b, rb1). After it,
+    /// the dense reward teaches going back (rung r, rr8).
+    #[serde(default)]
+    pub dense_reward_after_goal: bool,
     /// A bonus for the critics during pretraining only, after HyperX's
     /// meta-training exploration bonuses: a step that arrives in a cell this
     /// trajectory has not visited earns this much reward, until the
@@ -461,6 +469,13 @@ impl EppoConfig {
                  entropy_coef (got {}): the weight moves in log space",
                 self.entropy_coef
             ));
+        }
+        if self.dense_reward_after_goal && self.dense_reward_coef == 0.0 {
+            return bad(
+                "dense_reward_after_goal = true pays nothing with dense_reward_coef = 0: \
+                 set dense_reward_coef > 0, or drop dense_reward_after_goal"
+                    .to_string(),
+            );
         }
         if let Some(r) = self.replay_ratio
             && !(r.is_finite() && r > 0.0)

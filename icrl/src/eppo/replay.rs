@@ -320,7 +320,12 @@ pub(super) fn make_batch(
             );
             acts_f.extend_from_slice(&t.actions[step * a..(step + 1) * a]);
             acts_i.push(t.action_idx.get(step).copied().unwrap_or(0));
-            let shaping = dense_reward(t, step, spec, cfg) + novelty * novel[step];
+            let dense = if cfg.dense_reward_after_goal && !found {
+                0.0
+            } else {
+                dense_reward(t, step, spec, cfg)
+            };
+            let shaping = dense + novelty * novel[step];
             rew[k] = (t.rewards[step] + shaping) * cfg.reward_scale as f32;
             cost[k] = t.costs[step];
             ctg[k] = t.ctg[step];

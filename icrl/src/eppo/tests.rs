@@ -287,6 +287,45 @@ fn the_dense_critic_reward_shapes_targets_and_leaves_tokens_sparse() {
 }
 
 #[test]
+fn the_dense_reward_after_the_goal_waits_for_a_success_in_the_context() {
+    let (learner, _) = tiny_learner(0);
+    // Relabelled at (4, 6): episode 0 reaches it at step 1; steps 2 and 3
+    // (episode 1) have that success in their context.
+    let mut t = relabel(&two_episode_trajectory(), 2, 1, &GRID_RULE, [4.0, 6.0]);
+    t.actions = vec![0.0; t.len() * learner.spec.act_flat()];
+    let rewards = |coef: f64, after_goal: bool| {
+        let cfg = EppoConfig {
+            dense_reward_coef: coef,
+            dense_reward_after_goal: after_goal,
+            ..learner.cfg.clone()
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        to_vec(&make_batch(&[&t], &cfg, &learner.spec, 0.0, &mut rng, Device::Cpu).rewards)
+    };
+    let sparse = rewards(0.0, false);
+    let shaping = |r: Vec<f32>| -> Vec<f32> {
+        let scale = learner.cfg.reward_scale as f32;
+        r.iter().zip(&sparse).take(4).map(|(d, s)| (d - s) / scale).collect()
+    };
+    let always = shaping(rewards(1.0, false));
+    let after_goal = shaping(rewards(1.0, true));
+    let progress = |step: usize| {
+        let d = |o: &[f32]| GoalRule::distance([o[0], o[1]], [4.0, 6.0]);
+        d(&t.obs[step * 2..step * 2 + 2]) - d(&t.next_obs[step * 2..step * 2 + 2])
+    };
+    for step in 0..4 {
+        assert!((always[step] - progress(step)).abs() < 1e-5, "step {step}");
+        let expected = if step < 2 { 0.0 } else { progress(step) };
+        assert!((after_goal[step] - expected).abs() < 1e-5, "step {step}");
+    }
+    assert!(always[0] != 0.0 && after_goal[3] != 0.0);
+    let mut cfg = learner.cfg.clone();
+    cfg.dense_reward_after_goal = true;
+    let e = cfg.validate().unwrap_err().to_string();
+    assert!(e.contains("dense_reward_coef"), "{e}");
+}
+
+#[test]
 fn the_goal_enters_the_context_with_its_reward() {
     // One fixed task (the ladder's first rung): collect until an episode
     // ends at the goal, then look at the token after it.
