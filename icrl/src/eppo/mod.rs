@@ -55,7 +55,9 @@
 //! Levers for the robots' ladder, off in every preset until a run shows they
 //! help (results/eppo_point_ladder): hindsight task relabelling of replayed
 //! trajectories (`relabel_prob`, `relabel.rs`), a dense reward for the
-//! critics only (`dense_reward_coef`; tokens stay sparse), a scripted first
+//! critics only (`dense_reward_coef`; tokens stay sparse; with
+//! `dense_reward_after_goal`, only once a success is in the context, where
+//! the agent can know the goal), a scripted first
 //! episode that shows the goal (`scripted_first_episode`), an auxiliary loss
 //! that reads the found goal off the trajectory encoding
 //! (`goal_recall_coef`), observations standardised by a random policy's
