@@ -305,7 +305,11 @@ fn the_dense_reward_after_the_goal_waits_for_a_success_in_the_context() {
     let sparse = rewards(0.0, false);
     let shaping = |r: Vec<f32>| -> Vec<f32> {
         let scale = learner.cfg.reward_scale as f32;
-        r.iter().zip(&sparse).take(4).map(|(d, s)| (d - s) / scale).collect()
+        r.iter()
+            .zip(&sparse)
+            .take(4)
+            .map(|(d, s)| (d - s) / scale)
+            .collect()
     };
     let always = shaping(rewards(1.0, false));
     let after_goal = shaping(rewards(1.0, true));
