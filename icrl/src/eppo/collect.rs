@@ -196,6 +196,14 @@ impl Collector<'_> {
                 ..Default::default()
             })
             .collect();
+        // Drawn only for a share below 1, so fully scripted runs keep their stream.
+        let scripted: Vec<bool> = (0..n)
+            .map(|_| {
+                self.cfg.scripted_first_episode
+                    && (self.cfg.scripted_share >= 1.0
+                        || self.rng.r#gen::<f64>() < self.cfg.scripted_share)
+            })
+            .collect();
         let mut active = vec![true; n];
         let (od, a) = (self.spec.obs_dim, self.spec.act_flat());
         let mut obs = venv.observations().to_vec();
@@ -233,9 +241,9 @@ impl Collector<'_> {
                     Ok(sample_actions(&policy, spec, &eps, false, rng))
                 },
             )?;
-            if self.cfg.scripted_first_episode {
+            if scripted.contains(&true) {
                 let first_episode: Vec<bool> = (0..n)
-                    .map(|i| active[i] && trajs[i].episode_returns.is_empty())
+                    .map(|i| scripted[i] && active[i] && trajs[i].episode_returns.is_empty())
                     .collect();
                 script_actions(
                     venv,

@@ -195,6 +195,11 @@ pub struct EppoConfig {
     /// measures revisiting alone. Off in every preset.
     #[serde(default)]
     pub scripted_first_episode: bool,
+    /// With `scripted_first_episode`, the share of collected trajectories
+    /// whose first episode is scripted; the others search unaided, so one
+    /// run gathers both the revisits of rung r and the search of rung b.
+    #[serde(default = "default_scripted_share")]
+    pub scripted_share: f64,
     /// An auxiliary loss for pretraining only: a head reads the goal's
     /// position off the trajectory encoding h_t at every step after the
     /// window's first success (the goal then sits in the context, as the
@@ -340,6 +345,10 @@ fn default_entropy_coef_lr() -> f64 {
 }
 
 /// Absent from a config: one-step TD targets (the paper's).
+fn default_scripted_share() -> f64 {
+    1.0
+}
+
 fn default_n_step() -> usize {
     1
 }
@@ -459,6 +468,7 @@ impl EppoConfig {
             ),
             ("novelty_bonus", self.novelty_bonus, Range::NON_NEGATIVE),
             ("novelty_cell", self.novelty_cell, Range::POSITIVE),
+            ("scripted_share", self.scripted_share, Range::UNIT),
         ])
         .or_else(bad)?;
         if let Some(t) = self.target_entropy

@@ -58,7 +58,8 @@
 //! critics only (`dense_reward_coef`; tokens stay sparse; with
 //! `dense_reward_after_goal`, only once a success is in the context, where
 //! the agent can know the goal), a scripted first
-//! episode that shows the goal (`scripted_first_episode`), an auxiliary loss
+//! episode that shows the goal (`scripted_first_episode`, on a `scripted_share`
+//! of the trajectories), an auxiliary loss
 //! that reads the found goal off the trajectory encoding
 //! (`goal_recall_coef`), observations standardised by a random policy's
 //! statistics (`standardise_observations`), SAC's automatic temperature

@@ -223,16 +223,7 @@ fn the_scripted_first_episode_reaches_the_goal_and_relabelled_updates_run() {
     assert!(e.to_string().contains("scripted_first_episode"), "{e}");
     let mut learner = Learner::new(cfg.clone(), EnvName::Point).unwrap();
     let envs = (0..cfg.n_envs)
-        .map(|_| {
-            make_env(
-                EnvName::Point,
-                &EnvOptions {
-                    max_episode_steps: Some(cfg.max_episode_steps),
-                    physics_steps_per_action: cfg.physics_steps_per_action,
-                },
-            )
-            .unwrap()
-        })
+        .map(|_| make_env(EnvName::Point, &point_options(&cfg)).unwrap())
         .collect();
     let mut venv = VecEnv::new(envs, 1, true).unwrap();
     learner.collect(&mut venv).unwrap();
@@ -242,6 +233,36 @@ fn the_scripted_first_episode_reaches_the_goal_and_relabelled_updates_run() {
     }
     let stats = learner.update().unwrap();
     assert!(stats.value_loss.is_finite() && stats.policy_loss.is_finite());
+    // A share of 0.5: some first episodes are driven to the goal, the rest
+    // are the untrained policy's, which rarely reaches it.
+    let share = EppoConfig {
+        scripted_share: 0.5,
+        n_envs: 8,
+        ..cfg
+    };
+    let mut learner = Learner::new(share.clone(), EnvName::Point).unwrap();
+    let envs = (0..share.n_envs)
+        .map(|_| make_env(EnvName::Point, &point_options(&share)).unwrap())
+        .collect();
+    let mut venv = VecEnv::new(envs, 1, true).unwrap();
+    learner.collect(&mut venv).unwrap();
+    let first_found: Vec<bool> = learner
+        .replay
+        .trajectories
+        .iter()
+        .map(|t| t.episode_success[0])
+        .collect();
+    assert!(
+        first_found.contains(&true) && first_found.contains(&false),
+        "{first_found:?}"
+    );
+}
+
+fn point_options(cfg: &EppoConfig) -> EnvOptions {
+    EnvOptions {
+        max_episode_steps: Some(cfg.max_episode_steps),
+        physics_steps_per_action: cfg.physics_steps_per_action,
+    }
 }
 
 #[test]
