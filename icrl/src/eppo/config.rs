@@ -344,11 +344,12 @@ fn default_entropy_coef_lr() -> f64 {
     0.003
 }
 
-/// Absent from a config: one-step TD targets (the paper's).
+/// Absent from a config: every trajectory's first episode scripted (when on).
 fn default_scripted_share() -> f64 {
     1.0
 }
 
+/// Absent from a config: one-step TD targets (the paper's).
 fn default_n_step() -> usize {
     1
 }

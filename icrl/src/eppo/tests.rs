@@ -7,7 +7,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use tch::{Device, Kind, Tensor};
 
-use safety_envs::{EnvName, EnvOptions, Orientation, VecEnv, make_env, sample_task, spawn_config};
+use safety_envs::{EnvName, Orientation, VecEnv, sample_task, spawn_config};
 
 use super::collect::{Acting, EnvActions, Policy, sample_actions};
 use super::losses::{goal_recall_loss, losses, n_step_targets, penalised_cost, tuned_entropy_coef};
@@ -53,19 +53,15 @@ fn tiny_learner(seed: u64) -> (Learner, VecEnv) {
     let mut cfg = tiny();
     cfg.seed = seed;
     let learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+    (learner, training_venv(EnvName::DarkRoom, &cfg))
+}
+
+/// `cfg.n_envs` training environments of `env`, stepped on one thread.
+fn training_venv(env: EnvName, cfg: &EppoConfig) -> VecEnv {
     let envs = (0..cfg.n_envs)
-        .map(|_| {
-            make_env(
-                EnvName::DarkRoom,
-                &EnvOptions {
-                    max_episode_steps: Some(cfg.max_episode_steps),
-                    physics_steps_per_action: cfg.physics_steps_per_action,
-                },
-            )
-            .unwrap()
-        })
+        .map(|_| make_training_env(env, cfg).unwrap())
         .collect();
-    (learner, VecEnv::new(envs, 1, true).unwrap())
+    VecEnv::new(envs, 1, true).unwrap()
 }
 
 fn to_vec(t: &Tensor) -> Vec<f32> {
@@ -222,10 +218,7 @@ fn the_scripted_first_episode_reaches_the_goal_and_relabelled_updates_run() {
     let e = Learner::new(darkroom, EnvName::DarkRoom).err().unwrap();
     assert!(e.to_string().contains("scripted_first_episode"), "{e}");
     let mut learner = Learner::new(cfg.clone(), EnvName::Point).unwrap();
-    let envs = (0..cfg.n_envs)
-        .map(|_| make_env(EnvName::Point, &point_options(&cfg)).unwrap())
-        .collect();
-    let mut venv = VecEnv::new(envs, 1, true).unwrap();
+    let mut venv = training_venv(EnvName::Point, &cfg);
     learner.collect(&mut venv).unwrap();
     for t in &learner.replay.trajectories {
         assert!(t.episode_success[0], "the controller reaches every goal");
@@ -241,10 +234,7 @@ fn the_scripted_first_episode_reaches_the_goal_and_relabelled_updates_run() {
         ..cfg
     };
     let mut learner = Learner::new(share.clone(), EnvName::Point).unwrap();
-    let envs = (0..share.n_envs)
-        .map(|_| make_env(EnvName::Point, &point_options(&share)).unwrap())
-        .collect();
-    let mut venv = VecEnv::new(envs, 1, true).unwrap();
+    let mut venv = training_venv(EnvName::Point, &share);
     learner.collect(&mut venv).unwrap();
     let first_found: Vec<bool> = learner
         .replay
@@ -256,13 +246,6 @@ fn the_scripted_first_episode_reaches_the_goal_and_relabelled_updates_run() {
         first_found.contains(&true) && first_found.contains(&false),
         "{first_found:?}"
     );
-}
-
-fn point_options(cfg: &EppoConfig) -> EnvOptions {
-    EnvOptions {
-        max_episode_steps: Some(cfg.max_episode_steps),
-        physics_steps_per_action: cfg.physics_steps_per_action,
-    }
 }
 
 #[test]
@@ -1333,10 +1316,7 @@ fn the_goal_conditioned_rung_sees_the_goal_and_is_never_evaluated() {
     };
     let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
     assert_eq!(learner.spec.obs_dim, 4, "position and goal");
-    let envs = (0..cfg.n_envs)
-        .map(|_| make_training_env(EnvName::DarkRoom, &cfg).unwrap())
-        .collect();
-    let mut venv = VecEnv::new(envs, 1, true).unwrap();
+    let mut venv = training_venv(EnvName::DarkRoom, &cfg);
     learner.collect(&mut venv).unwrap();
     for t in &learner.replay.trajectories {
         for step in t.obs.chunks(4) {
