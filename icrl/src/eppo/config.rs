@@ -13,6 +13,7 @@ use safety_envs::EnvError;
 
 use super::multiplier::Gains;
 use super::net::NetSpec;
+use super::replay::Shaping;
 use crate::checkpoint::CheckpointError;
 use crate::model::{self, ModelError};
 
@@ -258,6 +259,12 @@ pub struct EppoConfig {
     /// Which steps the actor's cost penalty lambda x Qc weighs (issue 18).
     #[serde(default)]
     pub penalty: PenaltyForm,
+    /// `penalty = "saute"`: the critics' reward for every step of an episode
+    /// once its cost has passed its budget, in place of the collected reward
+    /// (OmniSafe's Saute default is -1 per step on dense-reward tasks; the
+    /// goal here is worth 1 once).
+    #[serde(default = "default_saute_unsafe_reward")]
+    pub saute_unsafe_reward: f64,
     /// What the multiplier integrates on each sampled trajectory (issue 18).
     #[serde(default)]
     pub violation_signal: ViolationSignal,
@@ -303,6 +310,13 @@ pub enum PenaltyForm {
     /// budget, max(0, Qc(h_t, a) - CTG_t). Zero while the cost critic expects
     /// the episode to stay within its budget, whatever happened elsewhere.
     Hinge,
+    /// Saute RL (Sootla et al., ICML 2022): no multiplier and no actor
+    /// penalty. The remaining budget is already in every token (CTG_t), and
+    /// once an episode's cost passes its budget the critics see
+    /// `saute_unsafe_reward` on each of its remaining steps instead of the
+    /// reward, goal included: overspending loses the episode, whatever lambda
+    /// would have been on this training seed.
+    Saute,
 }
 
 /// The per-trajectory violation g that the multiplier integrates.
@@ -328,6 +342,11 @@ pub enum ViolationSignal {
 /// Absent from a config: lambda stops rising once 5% of later episodes are over budget.
 fn default_lambda_target_rate() -> f64 {
     0.05
+}
+
+/// Absent from a config: a tenth of a goal per step once the budget is spent.
+fn default_saute_unsafe_reward() -> f64 {
+    -0.1
 }
 
 /// Absent from a config: one SafeDarkRoom cell.
@@ -470,6 +489,11 @@ impl EppoConfig {
             ("novelty_bonus", self.novelty_bonus, Range::NON_NEGATIVE),
             ("novelty_cell", self.novelty_cell, Range::POSITIVE),
             ("scripted_share", self.scripted_share, Range::UNIT),
+            (
+                "saute_unsafe_reward",
+                self.saute_unsafe_reward,
+                Range::new(f64::NEG_INFINITY, true, 0.0, false),
+            ),
         ])
         .or_else(bad)?;
         if let Some(t) = self.target_entropy
@@ -485,6 +509,19 @@ impl EppoConfig {
             return bad(
                 "dense_reward_after_goal = true pays nothing with dense_reward_coef = 0: \
                  set dense_reward_coef > 0, or drop dense_reward_after_goal"
+                    .to_string(),
+            );
+        }
+        if self.penalty == PenaltyForm::Saute
+            && (self.lambda_init != 0.0
+                || self.lambda_lr != 0.0
+                || self.lambda_kp != 0.0
+                || self.lambda_kd != 0.0)
+        {
+            return bad(
+                "penalty = \"saute\" prices the budget in the critics' reward, so the \
+                 multiplier must stay at 0: set lambda_init = 0, lambda_lr = 0, lambda_kp = 0 \
+                 and lambda_kd = 0"
                     .to_string(),
             );
         }
@@ -590,6 +627,18 @@ impl EppoConfig {
         match self.novelty_anneal_updates {
             0 => self.novelty_bonus,
             n => self.novelty_bonus * (1.0 - updates as f64 / n as f64).max(0.0),
+        }
+    }
+
+    /// What the critics' rewards carry at update `updates` beyond the
+    /// collected reward. Saute's unsafe reward starts with the constraint,
+    /// after `lambda_warmup_updates`, as the multiplier would.
+    pub(super) fn shaping(&self, updates: u64) -> Shaping {
+        let constrained = updates >= self.lambda_warmup_updates;
+        Shaping {
+            novelty: self.novelty_weight(updates) as f32,
+            unsafe_reward: (self.penalty == PenaltyForm::Saute && constrained)
+                .then_some(self.saute_unsafe_reward as f32),
         }
     }
 

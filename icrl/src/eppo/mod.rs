@@ -74,9 +74,12 @@
 //! until measured: behaviour noise capped once a trajectory has found its goal
 //! (`eps_after_success`), a critic-only bonus for cells new to the trajectory
 //! until its first success (`novelty_bonus`, annealed over
-//! `novelty_anneal_updates`), and the actor's penalty at decision time,
+//! `novelty_anneal_updates`), the actor's penalty at decision time,
 //! max(0, Qc - CTG_t), instead of Algorithm 1's hindsight flag
-//! (`penalty = "hinge"`).
+//! (`penalty = "hinge"`), and no multiplier at all (`penalty = "saute"`, after
+//! Saute RL): once an episode has spent its budget, the critics' reward for
+//! its remaining steps is `saute_unsafe_reward`, so the price of overspending
+//! does not depend on where an integrator settles on a given training seed.
 //!
 //! Metrics (`metrics.jsonl`, one record per collection round, against
 //! `env_steps`): `episodic_return`, `episodic_cost` (means over the episodes
@@ -259,12 +262,11 @@ impl Learner {
             .zip(&relabelled)
             .map(|(&t, r)| r.as_ref().unwrap_or(t))
             .collect();
-        let novelty = self.cfg.novelty_weight(self.updates) as f32;
         let batch = make_batch(
             &trajs,
             &self.cfg,
             &self.spec,
-            novelty,
+            self.cfg.shaping(self.updates),
             &mut self.rng,
             self.device,
         );

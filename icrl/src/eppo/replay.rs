@@ -236,13 +236,24 @@ pub(super) fn novel_arrivals(t: &Trajectory, obs_dim: usize, cell: f64) -> Vec<f
     novel
 }
 
-/// A batch of windows of `trajs`; the critics' rewards carry the novelty
-/// bonus at weight `novelty` (this update's annealed value).
+/// What the critics' rewards carry beyond the collected reward at one update
+/// ([`EppoConfig::shaping`]); the tokens never do.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub(super) struct Shaping {
+    /// The novelty bonus's weight (annealed).
+    pub(super) novelty: f32,
+    /// Saute: the reward of every step of an episode once its cost has
+    /// passed its budget (CTG after the step below 0), in place of the
+    /// collected and dense rewards.
+    pub(super) unsafe_reward: Option<f32>,
+}
+
+/// A batch of windows of `trajs`, the critics' rewards shaped by `shaping`.
 pub(super) fn make_batch(
     trajs: &[&Trajectory],
     cfg: &EppoConfig,
     spec: &NetSpec,
-    novelty: f32,
+    shaping: Shaping,
     rng: &mut ChaCha8Rng,
     device: Device,
 ) -> Batch {
@@ -267,7 +278,7 @@ pub(super) fn make_batch(
     let zeros_o = vec![0f32; spec.obs_dim];
     for (j, (t, &(s, len))) in trajs.iter().zip(&windows).enumerate() {
         let violated: Vec<bool> = t.episode_costs.iter().map(|&c| c > t.budget).collect();
-        let novel = if novelty > 0.0 {
+        let novel = if shaping.novelty > 0.0 {
             novel_arrivals(t, spec.obs_dim, cfg.novelty_cell)
         } else {
             vec![0.0; t.len()]
@@ -325,8 +336,12 @@ pub(super) fn make_batch(
             } else {
                 dense_reward(t, step, spec, cfg)
             };
-            let shaping = dense + novelty * novel[step];
-            rew[k] = (t.rewards[step] + shaping) * cfg.reward_scale as f32;
+            let over_budget = t.ctg[step] - t.costs[step] < 0.0;
+            let reward = match shaping.unsafe_reward {
+                Some(unsafe_reward) if over_budget => unsafe_reward,
+                _ => t.rewards[step] + dense + shaping.novelty * novel[step],
+            };
+            rew[k] = reward * cfg.reward_scale as f32;
             cost[k] = t.costs[step];
             ctg[k] = t.ctg[step];
             viol[k] = if violated[t.episode[step] as usize] {

@@ -12,7 +12,7 @@ use safety_envs::{EnvName, Orientation, VecEnv, sample_task, spawn_config};
 use super::collect::{Acting, EnvActions, Policy, sample_actions};
 use super::losses::{goal_recall_loss, losses, n_step_targets, penalised_cost, tuned_entropy_coef};
 use super::net::{tanh_gaussian_log_prob, tanh_gaussian_sample};
-use super::replay::{Batch, make_batch, novel_arrivals};
+use super::replay::{Batch, Shaping, make_batch, novel_arrivals};
 use super::*;
 use crate::agent::{Actions, Conditioning, InContextAgent, StepInput};
 use crate::model::Positions;
@@ -260,7 +260,14 @@ fn the_dense_critic_reward_shapes_targets_and_leaves_tokens_sparse() {
     };
     let batch = |cfg: &EppoConfig| {
         let mut rng = ChaCha8Rng::seed_from_u64(1);
-        make_batch(&trajs, cfg, &learner.spec, 0.0, &mut rng, Device::Cpu)
+        make_batch(
+            &trajs,
+            cfg,
+            &learner.spec,
+            Shaping::default(),
+            &mut rng,
+            Device::Cpu,
+        )
     };
     let (sparse, dense) = (batch(&sparse_cfg), batch(&dense_cfg));
     assert_eq!(
@@ -304,7 +311,17 @@ fn the_dense_reward_after_the_goal_waits_for_a_success_in_the_context() {
             ..learner.cfg.clone()
         };
         let mut rng = ChaCha8Rng::seed_from_u64(1);
-        to_vec(&make_batch(&[&t], &cfg, &learner.spec, 0.0, &mut rng, Device::Cpu).rewards)
+        to_vec(
+            &make_batch(
+                &[&t],
+                &cfg,
+                &learner.spec,
+                Shaping::default(),
+                &mut rng,
+                Device::Cpu,
+            )
+            .rewards,
+        )
     };
     let sparse = rewards(0.0, false);
     let shaping = |r: Vec<f32>| -> Vec<f32> {
@@ -364,7 +381,14 @@ fn the_goal_enters_the_context_with_its_reward() {
     let norm = |x: f32| 2.0 * x / 8.0 - 1.0; // 9x9 grid: [0, 8] -> [-1, 1]
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     for t in &learner.replay.trajectories {
-        let batch = make_batch(&[t], &cfg, &learner.spec, 0.0, &mut rng, Device::Cpu);
+        let batch = make_batch(
+            &[t],
+            &cfg,
+            &learner.spec,
+            Shaping::default(),
+            &mut rng,
+            Device::Cpu,
+        );
         let tok = to_vec(&batch.tokens);
         let d = learner.spec.token_dim();
         for s in (0..t.len() - 1).filter(|&s| t.terminated[s]) {
@@ -516,9 +540,13 @@ fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
         ..Default::default()
     };
     let cfg = tiny();
-    let batch = |w: f32| {
+    let batch = |novelty: f32| {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
-        make_batch(&[&t], &cfg, &spec, w, &mut rng, Device::Cpu)
+        let shaping = Shaping {
+            novelty,
+            unsafe_reward: None,
+        };
+        make_batch(&[&t], &cfg, &spec, shaping, &mut rng, Device::Cpu)
     };
     let (plain, bonus) = (batch(0.0), batch(0.1));
     assert_eq!(to_vec(&plain.tokens), to_vec(&bonus.tokens));
@@ -536,6 +564,92 @@ fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
     assert!((cfg.novelty_weight(500) - 0.1).abs() < 1e-12);
     assert_eq!(cfg.novelty_weight(1000), 0.0);
     assert_eq!(cfg.novelty_weight(5000), 0.0);
+}
+
+#[test]
+fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
+    // cell_walk with costs: episode 0 pays 1 at step 1 (budget 1: not over)
+    // and 1 at step 2 (over); episode 1 goes over at step 3, then reaches the
+    // goal at step 4; episode 2 never pays.
+    let mut t = cell_walk();
+    t.costs = vec![0.0, 1.0, 1.0, 2.0, 0.0, 0.0, 0.0, 0.0];
+    t.ctg = vec![1.0, 1.0, 0.0, 1.0, -1.0, 1.0, 1.0, 1.0];
+    t.episode_costs = vec![2.0, 2.0, 0.0];
+    let spec = NetSpec {
+        obs_dim: 2,
+        obs_low: vec![0.0; 2],
+        obs_high: vec![8.0; 2],
+        n_actions: Some(5),
+        ..Default::default()
+    };
+    let mut cfg = tiny();
+    cfg.penalty = PenaltyForm::Saute;
+    cfg.lambda_lr = 0.0;
+    cfg.lambda_init = 0.0;
+    cfg.saute_unsafe_reward = -0.25;
+    cfg.lambda_warmup_updates = 100;
+    cfg.validate().unwrap();
+    assert_eq!(
+        cfg.shaping(99).unsafe_reward,
+        None,
+        "not before the constraint"
+    );
+    let shaping = cfg.shaping(100);
+    assert_eq!(shaping.unsafe_reward, Some(-0.25));
+    let batch = |shaping: Shaping| {
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        make_batch(&[&t], &cfg, &spec, shaping, &mut rng, Device::Cpu)
+    };
+    let (plain, saute) = (batch(Shaping::default()), batch(shaping));
+    assert_eq!(
+        to_vec(&plain.tokens),
+        to_vec(&saute.tokens),
+        "tokens as collected"
+    );
+    let scale = cfg.reward_scale as f32;
+    let unscaled =
+        |b: &Batch| -> Vec<f32> { to_vec(&b.rewards).iter().map(|r| r / scale).collect() };
+    assert_eq!(
+        unscaled(&plain),
+        vec![0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
+    );
+    assert_eq!(
+        unscaled(&saute),
+        // at the budget is within it; past it, every step of the episode,
+        // the goal's too; the next episode starts clean.
+        vec![0.0, 0.0, -0.25, -0.25, -0.25, 0.0, 0.0, 0.0]
+    );
+    // Under another penalty form the same settings shape nothing.
+    cfg.penalty = PenaltyForm::Hindsight;
+    assert_eq!(cfg.shaping(100).unsafe_reward, None);
+    // The actor pays no lambda term: the price is in the reward.
+    let qc = Tensor::from_slice(&[0.5f32, 2.0]).view([1, 2]);
+    let ones = qc.ones_like();
+    assert_eq!(
+        to_vec(&penalised_cost(
+            &qc,
+            &ones,
+            &(ones.zeros_like() - 5.0),
+            PenaltyForm::Saute
+        )),
+        vec![0.0, 0.0]
+    );
+}
+
+#[test]
+fn saute_refuses_a_multiplier_that_moves() {
+    let mut cfg = tiny();
+    cfg.penalty = PenaltyForm::Saute;
+    cfg.lambda_init = 0.0;
+    cfg.lambda_lr = 0.001;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(err.contains("lambda_lr = 0"), "{err}");
+    cfg.lambda_lr = 0.0;
+    cfg.saute_unsafe_reward = 0.5;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(err.contains("saute_unsafe_reward"), "{err}");
+    cfg.saute_unsafe_reward = -0.1;
+    cfg.validate().unwrap();
 }
 
 #[test]
@@ -600,7 +714,14 @@ fn goal_recall_counts_only_steps_after_a_success_and_falls() {
         .flat_map(|s| (0..5).map(move |a| f32::from(u8::from(a == s))))
         .collect(); // one-hot, SafeDarkRoom's 5 actions
     let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let mut batch = make_batch(&[&t], &cfg, &learner.spec, 0.0, &mut rng, Device::Cpu);
+    let mut batch = make_batch(
+        &[&t],
+        &cfg,
+        &learner.spec,
+        Shaping::default(),
+        &mut rng,
+        Device::Cpu,
+    );
     assert_eq!(to_vec(&batch.goal_known), [0.0, 0.0, 1.0, 1.0, 1.0]);
     assert_eq!(to_vec(&batch.goal), [5.0, 5.0]);
     let recall = |learner: &Learner, batch: &Batch| {
@@ -808,7 +929,7 @@ fn replay_batch(learner: &Learner) -> Batch {
         &trajs,
         &learner.cfg,
         &learner.spec,
-        0.0,
+        Shaping::default(),
         &mut rng,
         Device::Cpu,
     )
@@ -933,7 +1054,14 @@ fn terminated_and_truncated_reach_the_targets_apart() {
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let mut across = cfg.clone();
     across.bootstrap_across_episodes = true;
-    let b = make_batch(&[&t], &across, &spec, 0.0, &mut rng, Device::Cpu);
+    let b = make_batch(
+        &[&t],
+        &across,
+        &spec,
+        Shaping::default(),
+        &mut rng,
+        Device::Cpu,
+    );
     assert_eq!(to_vec(&b.bootstrap), vec![1.0, 1.0, 1.0, 0.0]);
     // The cost's target stops at every episode end: episode 0's costs
     // are not charged with episode 1's.
@@ -947,7 +1075,14 @@ fn terminated_and_truncated_reach_the_targets_apart() {
     assert_eq!(to_vec(&b.ctg), t.ctg, "CTG_t as recorded, unscaled");
     let mut within = cfg;
     within.bootstrap_across_episodes = false;
-    let b = make_batch(&[&t], &within, &spec, 0.0, &mut rng, Device::Cpu);
+    let b = make_batch(
+        &[&t],
+        &within,
+        &spec,
+        Shaping::default(),
+        &mut rng,
+        Device::Cpu,
+    );
     // Truncated: no target (its final state is not a token); terminated: r alone.
     assert_eq!(to_vec(&b.td_valid), vec![1.0, 0.0, 1.0, 1.0]);
     assert_eq!(to_vec(&b.bootstrap), vec![1.0, 0.0, 1.0, 0.0]);
@@ -980,7 +1115,7 @@ fn acting_through_the_cache_matches_the_full_forward() {
         &[&t],
         &learner.cfg,
         &learner.spec,
-        0.0,
+        Shaping::default(),
         &mut rng,
         Device::Cpu,
     );
@@ -1088,7 +1223,14 @@ fn continuous_shapes_and_gradients() {
         episode_success: vec![true],
     };
     let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let batch = make_batch(&[&t, &t], &cfg, &spec, 0.0, &mut rng, Device::Cpu);
+    let batch = make_batch(
+        &[&t, &t],
+        &cfg,
+        &spec,
+        Shaping::default(),
+        &mut rng,
+        Device::Cpu,
+    );
     assert_eq!(batch.tokens.size(), vec![2, 5, 3 + 3 + 2 + 4]);
     assert_eq!(batch.actions.size(), vec![2, 5, 2]);
     let (lv, lc, lp, ..) = losses(&net, &target, &batch, 1.0, cfg.entropy_coef, &cfg).unwrap();
@@ -1181,7 +1323,14 @@ fn filtered_bc_raises_the_log_prob_of_kept_replayed_actions() {
         let mut cfg = learner.cfg.clone();
         cfg.entropy_coef = 0.0;
         let (batch, net, target, vs) = if discrete {
-            let batch = make_batch(&trajs, &cfg, &learner.spec, 0.0, &mut rng, Device::Cpu);
+            let batch = make_batch(
+                &trajs,
+                &cfg,
+                &learner.spec,
+                Shaping::default(),
+                &mut rng,
+                Device::Cpu,
+            );
             let vs = nn::VarStore::new(Device::Cpu);
             let net = EppoNet::new(vs.root(), &cfg, &learner.spec).unwrap();
             let tvs = nn::VarStore::new(Device::Cpu);
@@ -1207,7 +1356,14 @@ fn filtered_bc_raises_the_log_prob_of_kept_replayed_actions() {
                 })
                 .collect();
             let refs: Vec<&Trajectory> = owned.iter().collect();
-            let batch = make_batch(&refs, &cfg, &spec, 0.0, &mut rng, Device::Cpu);
+            let batch = make_batch(
+                &refs,
+                &cfg,
+                &spec,
+                Shaping::default(),
+                &mut rng,
+                Device::Cpu,
+            );
             let vs = nn::VarStore::new(Device::Cpu);
             let net = EppoNet::new(vs.root(), &cfg, &spec).unwrap();
             let tvs = nn::VarStore::new(Device::Cpu);
