@@ -260,14 +260,7 @@ fn the_dense_critic_reward_shapes_targets_and_leaves_tokens_sparse() {
     };
     let batch = |cfg: &EppoConfig| {
         let mut rng = ChaCha8Rng::seed_from_u64(1);
-        make_batch(
-            &trajs,
-            cfg,
-            &learner.spec,
-            Shaping::default(),
-            &mut rng,
-            Device::Cpu,
-        )
+        unshaped_batch(&trajs, cfg, &learner.spec, &mut rng)
     };
     let (sparse, dense) = (batch(&sparse_cfg), batch(&dense_cfg));
     assert_eq!(
@@ -311,17 +304,7 @@ fn the_dense_reward_after_the_goal_waits_for_a_success_in_the_context() {
             ..learner.cfg.clone()
         };
         let mut rng = ChaCha8Rng::seed_from_u64(1);
-        to_vec(
-            &make_batch(
-                &[&t],
-                &cfg,
-                &learner.spec,
-                Shaping::default(),
-                &mut rng,
-                Device::Cpu,
-            )
-            .rewards,
-        )
+        to_vec(&unshaped_batch(&[&t], &cfg, &learner.spec, &mut rng).rewards)
     };
     let sparse = rewards(0.0, false);
     let shaping = |r: Vec<f32>| -> Vec<f32> {
@@ -381,14 +364,7 @@ fn the_goal_enters_the_context_with_its_reward() {
     let norm = |x: f32| 2.0 * x / 8.0 - 1.0; // 9x9 grid: [0, 8] -> [-1, 1]
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     for t in &learner.replay.trajectories {
-        let batch = make_batch(
-            &[t],
-            &cfg,
-            &learner.spec,
-            Shaping::default(),
-            &mut rng,
-            Device::Cpu,
-        );
+        let batch = unshaped_batch(&[t], &cfg, &learner.spec, &mut rng);
         let tok = to_vec(&batch.tokens);
         let d = learner.spec.token_dim();
         for s in (0..t.len() - 1).filter(|&s| t.terminated[s]) {
@@ -714,14 +690,7 @@ fn goal_recall_counts_only_steps_after_a_success_and_falls() {
         .flat_map(|s| (0..5).map(move |a| f32::from(u8::from(a == s))))
         .collect(); // one-hot, SafeDarkRoom's 5 actions
     let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let mut batch = make_batch(
-        &[&t],
-        &cfg,
-        &learner.spec,
-        Shaping::default(),
-        &mut rng,
-        Device::Cpu,
-    );
+    let mut batch = unshaped_batch(&[&t], &cfg, &learner.spec, &mut rng);
     assert_eq!(to_vec(&batch.goal_known), [0.0, 0.0, 1.0, 1.0, 1.0]);
     assert_eq!(to_vec(&batch.goal), [5.0, 5.0]);
     let recall = |learner: &Learner, batch: &Batch| {
@@ -920,19 +889,22 @@ fn late_rate_signal_ignores_the_blind_first_half() {
     assert!(kept.max_violation() > 0.0, "where Eq. (7) would still rise");
 }
 
+/// A batch of `trajs` whose critics see the collected rewards only.
+fn unshaped_batch(
+    trajs: &[&Trajectory],
+    cfg: &EppoConfig,
+    spec: &NetSpec,
+    rng: &mut ChaCha8Rng,
+) -> Batch {
+    make_batch(trajs, cfg, spec, Shaping::default(), rng, Device::Cpu)
+}
+
 /// One batch of every trajectory in `learner`'s replay (windows drawn with
 /// seed 0, no novelty bonus).
 fn replay_batch(learner: &Learner) -> Batch {
     let trajs: Vec<&Trajectory> = learner.replay.trajectories.iter().collect();
     let mut rng = ChaCha8Rng::seed_from_u64(0);
-    make_batch(
-        &trajs,
-        &learner.cfg,
-        &learner.spec,
-        Shaping::default(),
-        &mut rng,
-        Device::Cpu,
-    )
+    unshaped_batch(&trajs, &learner.cfg, &learner.spec, &mut rng)
 }
 
 /// A batch collected by a tiny SafeDarkRoom learner whose actor pays the
@@ -1054,14 +1026,7 @@ fn terminated_and_truncated_reach_the_targets_apart() {
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let mut across = cfg.clone();
     across.bootstrap_across_episodes = true;
-    let b = make_batch(
-        &[&t],
-        &across,
-        &spec,
-        Shaping::default(),
-        &mut rng,
-        Device::Cpu,
-    );
+    let b = unshaped_batch(&[&t], &across, &spec, &mut rng);
     assert_eq!(to_vec(&b.bootstrap), vec![1.0, 1.0, 1.0, 0.0]);
     // The cost's target stops at every episode end: episode 0's costs
     // are not charged with episode 1's.
@@ -1075,14 +1040,7 @@ fn terminated_and_truncated_reach_the_targets_apart() {
     assert_eq!(to_vec(&b.ctg), t.ctg, "CTG_t as recorded, unscaled");
     let mut within = cfg;
     within.bootstrap_across_episodes = false;
-    let b = make_batch(
-        &[&t],
-        &within,
-        &spec,
-        Shaping::default(),
-        &mut rng,
-        Device::Cpu,
-    );
+    let b = unshaped_batch(&[&t], &within, &spec, &mut rng);
     // Truncated: no target (its final state is not a token); terminated: r alone.
     assert_eq!(to_vec(&b.td_valid), vec![1.0, 0.0, 1.0, 1.0]);
     assert_eq!(to_vec(&b.bootstrap), vec![1.0, 0.0, 1.0, 0.0]);
@@ -1111,14 +1069,7 @@ fn acting_through_the_cache_matches_the_full_forward() {
     learner.collect(&mut venv).unwrap();
     let t = learner.replay.trajectories[0].clone();
     let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let batch = make_batch(
-        &[&t],
-        &learner.cfg,
-        &learner.spec,
-        Shaping::default(),
-        &mut rng,
-        Device::Cpu,
-    );
+    let batch = unshaped_batch(&[&t], &learner.cfg, &learner.spec, &mut rng);
     let full = tch::no_grad(|| {
         learner
             .net
@@ -1223,14 +1174,7 @@ fn continuous_shapes_and_gradients() {
         episode_success: vec![true],
     };
     let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let batch = make_batch(
-        &[&t, &t],
-        &cfg,
-        &spec,
-        Shaping::default(),
-        &mut rng,
-        Device::Cpu,
-    );
+    let batch = unshaped_batch(&[&t, &t], &cfg, &spec, &mut rng);
     assert_eq!(batch.tokens.size(), vec![2, 5, 3 + 3 + 2 + 4]);
     assert_eq!(batch.actions.size(), vec![2, 5, 2]);
     let (lv, lc, lp, ..) = losses(&net, &target, &batch, 1.0, cfg.entropy_coef, &cfg).unwrap();
@@ -1323,14 +1267,7 @@ fn filtered_bc_raises_the_log_prob_of_kept_replayed_actions() {
         let mut cfg = learner.cfg.clone();
         cfg.entropy_coef = 0.0;
         let (batch, net, target, vs) = if discrete {
-            let batch = make_batch(
-                &trajs,
-                &cfg,
-                &learner.spec,
-                Shaping::default(),
-                &mut rng,
-                Device::Cpu,
-            );
+            let batch = unshaped_batch(&trajs, &cfg, &learner.spec, &mut rng);
             let vs = nn::VarStore::new(Device::Cpu);
             let net = EppoNet::new(vs.root(), &cfg, &learner.spec).unwrap();
             let tvs = nn::VarStore::new(Device::Cpu);
@@ -1356,14 +1293,7 @@ fn filtered_bc_raises_the_log_prob_of_kept_replayed_actions() {
                 })
                 .collect();
             let refs: Vec<&Trajectory> = owned.iter().collect();
-            let batch = make_batch(
-                &refs,
-                &cfg,
-                &spec,
-                Shaping::default(),
-                &mut rng,
-                Device::Cpu,
-            );
+            let batch = unshaped_batch(&refs, &cfg, &spec, &mut rng);
             let vs = nn::VarStore::new(Device::Cpu);
             let net = EppoNet::new(vs.root(), &cfg, &spec).unwrap();
             let tvs = nn::VarStore::new(Device::Cpu);
