@@ -13,7 +13,7 @@ use safety_envs::EnvError;
 
 use super::multiplier::Gains;
 use super::net::NetSpec;
-use super::replay::Shaping;
+use super::replay::{OverBudget, Shaping};
 use crate::checkpoint::CheckpointError;
 use crate::model::{self, ModelError};
 
@@ -265,6 +265,13 @@ pub struct EppoConfig {
     /// goal here is worth 1 once).
     #[serde(default = "default_saute_unsafe_reward")]
     pub saute_unsafe_reward: f64,
+    /// `penalty = "saute"`: what each unit of cost paid after the budget is
+    /// spent takes off that step's reward, on top of `saute_unsafe_reward`.
+    /// 0 is Saute's constant, which leaves nothing to choose between actions
+    /// once an episode is over budget, so small budgets came out the most
+    /// costly (results/eppo_darkroom_budget, sa1).
+    #[serde(default)]
+    pub saute_cost_price: f64,
     /// What the multiplier integrates on each sampled trajectory (issue 18).
     #[serde(default)]
     pub violation_signal: ViolationSignal,
@@ -313,8 +320,8 @@ pub enum PenaltyForm {
     /// Saute RL (Sootla et al., ICML 2022): no multiplier and no actor
     /// penalty. The remaining budget is already in every token (CTG_t), and
     /// once an episode's cost passes its budget the critics see
-    /// `saute_unsafe_reward` on each of its remaining steps instead of the
-    /// reward, goal included: overspending loses the episode, whatever lambda
+    /// `saute_unsafe_reward` (less `saute_cost_price` per unit of cost) on
+    /// each of its remaining steps instead of the reward, goal included: overspending loses the episode, whatever lambda
     /// would have been on this training seed.
     Saute,
 }
@@ -494,6 +501,11 @@ impl EppoConfig {
                 self.saute_unsafe_reward,
                 Range::new(f64::NEG_INFINITY, true, 0.0, false),
             ),
+            (
+                "saute_cost_price",
+                self.saute_cost_price,
+                Range::NON_NEGATIVE,
+            ),
         ])
         .or_else(bad)?;
         if let Some(t) = self.target_entropy
@@ -637,8 +649,12 @@ impl EppoConfig {
         let constrained = updates >= self.lambda_warmup_updates;
         Shaping {
             novelty: self.novelty_weight(updates) as f32,
-            unsafe_reward: (self.penalty == PenaltyForm::Saute && constrained)
-                .then_some(self.saute_unsafe_reward as f32),
+            over_budget: (self.penalty == PenaltyForm::Saute && constrained).then_some(
+                OverBudget {
+                    reward: self.saute_unsafe_reward as f32,
+                    cost_price: self.saute_cost_price as f32,
+                },
+            ),
         }
     }
 

@@ -245,7 +245,14 @@ pub(super) struct Shaping {
     /// Saute: the reward of every step of an episode once its cost has
     /// passed its budget (CTG after the step below 0), in place of the
     /// collected and dense rewards.
-    pub(super) unsafe_reward: Option<f32>,
+    pub(super) over_budget: Option<OverBudget>,
+}
+
+/// Saute's reward for a step taken over budget: `reward - cost_price x c`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub(super) struct OverBudget {
+    pub(super) reward: f32,
+    pub(super) cost_price: f32,
 }
 
 /// A batch of windows of `trajs`, the critics' rewards shaped by `shaping`.
@@ -337,8 +344,8 @@ pub(super) fn make_batch(
                 dense_reward(t, step, spec, cfg)
             };
             let over_budget = t.ctg[step] - t.costs[step] < 0.0;
-            let reward = match shaping.unsafe_reward {
-                Some(unsafe_reward) if over_budget => unsafe_reward,
+            let reward = match shaping.over_budget {
+                Some(o) if over_budget => o.reward - o.cost_price * t.costs[step],
                 _ => t.rewards[step] + dense + shaping.novelty * novel[step],
             };
             rew[k] = reward * cfg.reward_scale as f32;

@@ -12,7 +12,7 @@ use safety_envs::{EnvName, Orientation, VecEnv, sample_task, spawn_config};
 use super::collect::{Acting, EnvActions, Policy, sample_actions};
 use super::losses::{goal_recall_loss, losses, n_step_targets, penalised_cost, tuned_entropy_coef};
 use super::net::{tanh_gaussian_log_prob, tanh_gaussian_sample};
-use super::replay::{Batch, Shaping, make_batch, novel_arrivals};
+use super::replay::{Batch, OverBudget, Shaping, make_batch, novel_arrivals};
 use super::*;
 use crate::agent::{Actions, Conditioning, InContextAgent, StepInput};
 use crate::model::Positions;
@@ -520,7 +520,7 @@ fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let shaping = Shaping {
             novelty,
-            unsafe_reward: None,
+            over_budget: None,
         };
         make_batch(&[&t], &cfg, &spec, shaping, &mut rng, Device::Cpu)
     };
@@ -565,18 +565,28 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
     cfg.saute_unsafe_reward = -0.25;
     cfg.lambda_warmup_updates = 100;
     cfg.validate().unwrap();
+    cfg.saute_cost_price = 2.0;
     assert_eq!(
-        cfg.shaping(99).unsafe_reward,
+        cfg.shaping(99).over_budget,
         None,
         "not before the constraint"
     );
-    let shaping = cfg.shaping(100);
-    assert_eq!(shaping.unsafe_reward, Some(-0.25));
+    assert_eq!(
+        cfg.shaping(100).over_budget,
+        Some(OverBudget {
+            reward: -0.25,
+            cost_price: 2.0
+        })
+    );
+    let over_budget = |reward: f32, cost_price: f32| Shaping {
+        novelty: 0.0,
+        over_budget: Some(OverBudget { reward, cost_price }),
+    };
     let batch = |shaping: Shaping| {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         make_batch(&[&t], &cfg, &spec, shaping, &mut rng, Device::Cpu)
     };
-    let (plain, saute) = (batch(Shaping::default()), batch(shaping));
+    let (plain, saute) = (batch(Shaping::default()), batch(over_budget(-0.25, 0.0)));
     assert_eq!(
         to_vec(&plain.tokens),
         to_vec(&saute.tokens),
@@ -595,9 +605,14 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
         // the goal's too; the next episode starts clean.
         vec![0.0, 0.0, -0.25, -0.25, -0.25, 0.0, 0.0, 0.0]
     );
+    // With a price on cost, each unit paid past the budget costs it too.
+    assert_eq!(
+        unscaled(&batch(over_budget(-0.25, 2.0))),
+        vec![0.0, 0.0, -2.25, -4.25, -0.25, 0.0, 0.0, 0.0]
+    );
     // Under another penalty form the same settings shape nothing.
     cfg.penalty = PenaltyForm::Hindsight;
-    assert_eq!(cfg.shaping(100).unsafe_reward, None);
+    assert_eq!(cfg.shaping(100).over_budget, None);
     // The actor pays no lambda term: the price is in the reward.
     let qc = Tensor::from_slice(&[0.5f32, 2.0]).view([1, 2]);
     let ones = qc.ones_like();
@@ -625,6 +640,10 @@ fn saute_refuses_a_multiplier_that_moves() {
     let err = cfg.validate().unwrap_err().to_string();
     assert!(err.contains("saute_unsafe_reward"), "{err}");
     cfg.saute_unsafe_reward = -0.1;
+    cfg.saute_cost_price = -1.0;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(err.contains("saute_cost_price"), "{err}");
+    cfg.saute_cost_price = 1.0;
     cfg.validate().unwrap();
 }
 
