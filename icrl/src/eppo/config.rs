@@ -321,8 +321,9 @@ pub enum PenaltyForm {
     /// penalty. The remaining budget is already in every token (CTG_t), and
     /// once an episode's cost passes its budget the critics see
     /// `saute_unsafe_reward` (less `saute_cost_price` per unit of cost) on
-    /// each of its remaining steps instead of the reward, goal included: overspending loses the episode, whatever lambda
-    /// would have been on this training seed.
+    /// each of its remaining steps instead of the reward, goal included:
+    /// overspending loses the episode, whatever lambda would have been on
+    /// this training seed.
     Saute,
 }
 

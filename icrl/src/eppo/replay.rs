@@ -343,9 +343,9 @@ pub(super) fn make_batch(
             } else {
                 dense_reward(t, step, spec, cfg)
             };
-            let over_budget = t.ctg[step] - t.costs[step] < 0.0;
+            let budget_spent = t.ctg[step] - t.costs[step] < 0.0;
             let reward = match shaping.over_budget {
-                Some(o) if over_budget => o.reward - o.cost_price * t.costs[step],
+                Some(o) if budget_spent => o.reward - o.cost_price * t.costs[step],
                 _ => t.rewards[step] + dense + shaping.novelty * novel[step],
             };
             rew[k] = reward * cfg.reward_scale as f32;
