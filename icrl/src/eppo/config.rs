@@ -265,13 +265,13 @@ pub struct EppoConfig {
     /// goal here is worth 1 once).
     #[serde(default = "default_saute_unsafe_reward")]
     pub saute_unsafe_reward: f64,
-    /// `penalty = "saute"`: what each unit of cost paid after the budget is
-    /// spent takes off that step's reward, on top of `saute_unsafe_reward`.
-    /// 0 is Saute's constant, which leaves nothing to choose between actions
-    /// once an episode is over budget, so small budgets came out the most
-    /// costly (results/eppo_darkroom_budget, sa1).
-    #[serde(default)]
-    pub saute_cost_price: f64,
+    /// `penalty = "saute"` or `"excess"`: what each unit of cost paid after
+    /// the budget is spent takes off that step's reward (under Saute, on top
+    /// of `saute_unsafe_reward`). 0 is Saute's constant, which leaves nothing
+    /// to choose between actions once an episode is over budget, so small
+    /// budgets came out the most costly (results/eppo_darkroom_budget, sa1).
+    #[serde(default, alias = "saute_cost_price")]
+    pub over_budget_cost_price: f64,
     /// What the multiplier integrates on each sampled trajectory (issue 18).
     #[serde(default)]
     pub violation_signal: ViolationSignal,
@@ -325,6 +325,14 @@ pub enum PenaltyForm {
     /// overspending loses the episode, whatever lambda would have been on
     /// this training seed.
     Saute,
+    /// The exact penalty at a fixed price, charged where it is incurred: no
+    /// multiplier and no actor penalty; every unit of cost paid past the
+    /// episode's budget takes `over_budget_cost_price` off that step's reward
+    /// in the critics' targets, the goal's reward kept. The episode's return
+    /// is then R - price x max(0, C - budget), Eq. (5)'s penalty with lambda
+    /// fixed. Saute's form, which also drops the goal once overspent, made a
+    /// spent budget a reason to rush to the next episode (sa1, sa3).
+    Excess,
 }
 
 /// The per-trajectory violation g that the multiplier integrates.
@@ -503,8 +511,8 @@ impl EppoConfig {
                 Range::new(f64::NEG_INFINITY, true, 0.0, false),
             ),
             (
-                "saute_cost_price",
-                self.saute_cost_price,
+                "over_budget_cost_price",
+                self.over_budget_cost_price,
                 Range::NON_NEGATIVE,
             ),
         ])
@@ -525,18 +533,30 @@ impl EppoConfig {
                     .to_string(),
             );
         }
-        if self.penalty == PenaltyForm::Saute
+        if matches!(self.penalty, PenaltyForm::Saute | PenaltyForm::Excess)
             && (self.lambda_init != 0.0
                 || self.lambda_lr != 0.0
                 || self.lambda_kp != 0.0
                 || self.lambda_kd != 0.0)
         {
-            return bad(
-                "penalty = \"saute\" prices the budget in the critics' reward, so the \
+            let form = if self.penalty == PenaltyForm::Saute {
+                "saute"
+            } else {
+                "excess"
+            };
+            return bad(format!(
+                "penalty = \"{form}\" prices the budget in the critics' reward, so the \
                  multiplier must stay at 0: set lambda_init = 0, lambda_lr = 0, lambda_kp = 0 \
                  and lambda_kd = 0"
-                    .to_string(),
-            );
+            ));
+        }
+        if self.penalty == PenaltyForm::Excess && self.over_budget_cost_price <= 0.0 {
+            return bad(format!(
+                "penalty = \"excess\" with over_budget_cost_price = {} charges nothing past the \
+                 budget: set over_budget_cost_price > 0 (1.0 prices a unit of excess cost \
+                 like one goal)",
+                self.over_budget_cost_price
+            ));
         }
         if let Some(r) = self.replay_ratio
             && !(r.is_finite() && r > 0.0)
@@ -644,18 +664,26 @@ impl EppoConfig {
     }
 
     /// What the critics' rewards carry at update `updates` beyond the
-    /// collected reward. Saute's unsafe reward starts with the constraint,
-    /// after `lambda_warmup_updates`, as the multiplier would.
+    /// collected reward. The over-budget reward (Saute's, the excess price)
+    /// starts with the constraint, after `lambda_warmup_updates`, as the
+    /// multiplier would.
     pub(super) fn shaping(&self, updates: u64) -> Shaping {
         let constrained = updates >= self.lambda_warmup_updates;
+        let cost_price = self.over_budget_cost_price as f32;
         Shaping {
             novelty: self.novelty_weight(updates) as f32,
-            over_budget: (self.penalty == PenaltyForm::Saute && constrained).then_some(
-                OverBudget {
-                    reward: self.saute_unsafe_reward as f32,
-                    cost_price: self.saute_cost_price as f32,
-                },
-            ),
+            over_budget: match self.penalty {
+                _ if !constrained => None,
+                PenaltyForm::Saute => Some(OverBudget {
+                    replaced_reward: Some(self.saute_unsafe_reward as f32),
+                    cost_price,
+                }),
+                PenaltyForm::Excess => Some(OverBudget {
+                    replaced_reward: None,
+                    cost_price,
+                }),
+                PenaltyForm::Hindsight | PenaltyForm::Hinge => None,
+            },
         }
     }
 

@@ -76,11 +76,13 @@
 //! until its first success (`novelty_bonus`, annealed over
 //! `novelty_anneal_updates`), the actor's penalty at decision time,
 //! max(0, Qc - CTG_t), instead of Algorithm 1's hindsight flag
-//! (`penalty = "hinge"`), and no multiplier at all (`penalty = "saute"`, after
-//! Saute RL): once an episode has spent its budget, the critics' reward for
-//! its remaining steps is `saute_unsafe_reward`, less `saute_cost_price` per
-//! unit of cost, so the price of overspending does not depend on where an
-//! integrator settles on a given training seed.
+//! (`penalty = "hinge"`), and no multiplier at all: once an episode has spent
+//! its budget, the critics' reward for its remaining steps is
+//! `saute_unsafe_reward` (`penalty = "saute"`, after Saute RL) or the usual
+//! reward (`penalty = "excess"`: Eq. (5)'s exact penalty with lambda fixed),
+//! less `over_budget_cost_price` per unit of cost, so the price of
+//! overspending does not depend on where an integrator settles on a given
+//! training seed.
 //!
 //! Metrics (`metrics.jsonl`, one record per collection round, against
 //! `env_steps`): `episodic_return`, `episodic_cost` (means over the episodes

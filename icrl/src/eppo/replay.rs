@@ -242,16 +242,17 @@ pub(super) fn novel_arrivals(t: &Trajectory, obs_dim: usize, cell: f64) -> Vec<f
 pub(super) struct Shaping {
     /// The novelty bonus's weight (annealed).
     pub(super) novelty: f32,
-    /// Saute: the reward of every step of an episode once its cost has
-    /// passed its budget (CTG after the step below 0), in place of the
-    /// collected and dense rewards.
+    /// Saute and the excess price: the reward of every step of an episode
+    /// once its cost has passed its budget (CTG after the step below 0).
     pub(super) over_budget: Option<OverBudget>,
 }
 
-/// Saute's reward for a step taken over budget: `reward - cost_price x c`.
+/// The reward of a step taken over budget: `r - cost_price x c`, where r is
+/// `replaced_reward` (Saute: the collected, dense and novelty rewards
+/// dropped) or, if `None`, the step's shaped reward as usual.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(super) struct OverBudget {
-    pub(super) reward: f32,
+    pub(super) replaced_reward: Option<f32>,
     pub(super) cost_price: f32,
 }
 
@@ -344,9 +345,12 @@ pub(super) fn make_batch(
                 dense_reward(t, step, spec, cfg)
             };
             let budget_spent = t.ctg[step] - t.costs[step] < 0.0;
+            let shaped = t.rewards[step] + dense + shaping.novelty * novel[step];
             let reward = match shaping.over_budget {
-                Some(o) if budget_spent => o.reward - o.cost_price * t.costs[step],
-                _ => t.rewards[step] + dense + shaping.novelty * novel[step],
+                Some(o) if budget_spent => {
+                    o.replaced_reward.unwrap_or(shaped) - o.cost_price * t.costs[step]
+                }
+                _ => shaped,
             };
             rew[k] = reward * cfg.reward_scale as f32;
             cost[k] = t.costs[step];

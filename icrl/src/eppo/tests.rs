@@ -542,11 +542,10 @@ fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
     assert_eq!(cfg.novelty_weight(5000), 0.0);
 }
 
-#[test]
-fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
-    // cell_walk with costs: episode 0 pays 1 at step 1 (budget 1: not over)
-    // and 1 at step 2 (over); episode 1 goes over at step 3, then reaches the
-    // goal at step 4; episode 2 never pays.
+/// cell_walk with costs: episode 0 pays 1 at step 1 (budget 1: not over)
+/// and 1 at step 2 (over); episode 1 goes over at step 3, then reaches the
+/// goal at step 4; episode 2 never pays.
+fn overspent_walk() -> (Trajectory, NetSpec) {
     let mut t = cell_walk();
     t.costs = vec![0.0, 1.0, 1.0, 2.0, 0.0, 0.0, 0.0, 0.0];
     t.ctg = vec![1.0, 1.0, 0.0, 1.0, -1.0, 1.0, 1.0, 1.0];
@@ -558,6 +557,12 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
         n_actions: Some(5),
         ..Default::default()
     };
+    (t, spec)
+}
+
+#[test]
+fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
+    let (t, spec) = overspent_walk();
     let mut cfg = tiny();
     cfg.penalty = PenaltyForm::Saute;
     cfg.lambda_lr = 0.0;
@@ -565,7 +570,7 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
     cfg.saute_unsafe_reward = -0.25;
     cfg.lambda_warmup_updates = 100;
     cfg.validate().unwrap();
-    cfg.saute_cost_price = 2.0;
+    cfg.over_budget_cost_price = 2.0;
     assert_eq!(
         cfg.shaping(99).over_budget,
         None,
@@ -574,13 +579,16 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
     assert_eq!(
         cfg.shaping(100).over_budget,
         Some(OverBudget {
-            reward: -0.25,
+            replaced_reward: Some(-0.25),
             cost_price: 2.0
         })
     );
     let over_budget = |reward: f32, cost_price: f32| Shaping {
         novelty: 0.0,
-        over_budget: Some(OverBudget { reward, cost_price }),
+        over_budget: Some(OverBudget {
+            replaced_reward: Some(reward),
+            cost_price,
+        }),
     };
     let batch = |shaping: Shaping| {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
@@ -640,11 +648,74 @@ fn saute_refuses_a_multiplier_that_moves() {
     let err = cfg.validate().unwrap_err().to_string();
     assert!(err.contains("saute_unsafe_reward"), "{err}");
     cfg.saute_unsafe_reward = -0.1;
-    cfg.saute_cost_price = -1.0;
+    cfg.over_budget_cost_price = -1.0;
     let err = cfg.validate().unwrap_err().to_string();
-    assert!(err.contains("saute_cost_price"), "{err}");
-    cfg.saute_cost_price = 1.0;
+    assert!(err.contains("over_budget_cost_price"), "{err}");
+    cfg.over_budget_cost_price = 1.0;
     cfg.validate().unwrap();
+}
+
+#[test]
+fn excess_price_charges_each_unit_past_the_budget_and_keeps_the_goal() {
+    let (t, spec) = overspent_walk();
+    let mut cfg = tiny();
+    cfg.penalty = PenaltyForm::Excess;
+    cfg.lambda_lr = 0.0;
+    cfg.lambda_init = 0.0;
+    cfg.lambda_warmup_updates = 100;
+    cfg.over_budget_cost_price = 2.0;
+    cfg.validate().unwrap();
+    assert_eq!(
+        cfg.shaping(99).over_budget,
+        None,
+        "not before the constraint"
+    );
+    let shaping = cfg.shaping(100);
+    assert_eq!(
+        shaping.over_budget,
+        Some(OverBudget {
+            replaced_reward: None,
+            cost_price: 2.0
+        })
+    );
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let batch = make_batch(&[&t], &cfg, &spec, shaping, &mut rng, Device::Cpu);
+    let scale = cfg.reward_scale as f32;
+    let rewards: Vec<f32> = to_vec(&batch.rewards).iter().map(|r| r / scale).collect();
+    assert_eq!(
+        rewards,
+        // within the budget nothing is charged; past it each unit costs the
+        // price and the goal still pays; the next episode starts clean.
+        vec![0.0, 0.0, -2.0, -4.0, 1.0, 0.0, 0.0, 0.0]
+    );
+    assert_eq!(
+        to_vec(&batch.costs),
+        t.costs,
+        "the cost critic's targets are the costs as paid"
+    );
+    // No actor penalty: the price is in the reward.
+    let qc = Tensor::from_slice(&[0.5f32, 2.0]).view([1, 2]);
+    let ones = qc.ones_like();
+    assert_eq!(
+        to_vec(&penalised_cost(
+            &qc,
+            &ones,
+            &ones.zeros_like(),
+            PenaltyForm::Excess
+        )),
+        vec![0.0, 0.0]
+    );
+    // Refused without a price, or with a multiplier that moves.
+    cfg.over_budget_cost_price = 0.0;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(err.contains("over_budget_cost_price > 0"), "{err}");
+    cfg.over_budget_cost_price = 1.0;
+    cfg.lambda_lr = 0.01;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(
+        err.contains("penalty = \"excess\"") && err.contains("lambda_lr = 0"),
+        "{err}"
+    );
 }
 
 #[test]
