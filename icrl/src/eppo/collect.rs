@@ -460,8 +460,12 @@ impl Acting {
     }
 }
 
-/// Picks actions: sampled (epsilon-greedy on top for discrete, row i with
-/// probability `eps[i]`; rows past the slice take none) or the mode. Returns the actions as the network sees them and as the environment takes them.
+/// Picks actions: sampled or the mode. On top of a sample, row i explores
+/// by `eps[i]` (rows past the slice take none): for discrete actions, a
+/// uniform action with probability `eps[i]`; for continuous ones, AMAGO's
+/// TD3-style noise, `clamp(x + eps[i] N(0, 1), -1, 1)` on the tanh-squashed
+/// action. Returns the actions as the network sees them and as the
+/// environment takes them.
 pub(super) fn sample_actions(
     policy: &Policy,
     spec: &NetSpec,
@@ -503,13 +507,18 @@ pub(super) fn sample_actions(
             let mut net = Vec::with_capacity(m.len());
             let mut env = Vec::with_capacity(m.len());
             for (j, (&mu, &log_std)) in m.iter().zip(s).enumerate() {
-                let z = if greedy {
-                    0.0
-                } else {
-                    rng.sample::<f32, _>(rand_distr::StandardNormal)
-                };
-                let x = (mu + log_std.exp() * z).tanh();
                 let k = j % a;
+                let x = if greedy {
+                    mu.tanh()
+                } else {
+                    let z: f32 = rng.sample(rand_distr::StandardNormal);
+                    let x = (mu + log_std.exp() * z).tanh();
+                    match eps.get(j / a).copied().unwrap_or(0.0) as f32 {
+                        0.0 => x,
+                        e => (x + e * rng.sample::<f32, _>(rand_distr::StandardNormal))
+                            .clamp(-1.0, 1.0),
+                    }
+                };
                 let (lo, hi) = (spec.act_low[k], spec.act_high[k]);
                 net.push(x);
                 env.push(lo + (x + 1.0) * 0.5 * (hi - lo));

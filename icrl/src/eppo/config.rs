@@ -140,8 +140,9 @@ pub struct EppoConfig {
     pub bc_coef: f64,
     /// Rewards are multiplied by this in the TD targets and the tokens.
     pub reward_scale: f64,
-    /// Epsilon-greedy exploration (discrete actions) at a trajectory's first
-    /// step, at the start of training. Epsilon is bilevel, after AMAGO: it
+    /// Exploration at a trajectory's first step, at the start of training:
+    /// epsilon-greedy for discrete actions, added Gaussian noise of scale
+    /// epsilon for continuous ones (`sample_actions`). Epsilon is bilevel, after AMAGO: it
     /// anneals over training and, inside each trajectory, moves linearly from
     /// its first-step value to its last-step value (`eps_last_*`).
     pub eps_start: f64,

@@ -1328,6 +1328,52 @@ fn continuous_shapes_and_gradients() {
 }
 
 #[test]
+fn continuous_exploration_noise_widens_the_sampled_actions_within_the_box() {
+    // Two rows, one action dimension, a near-deterministic policy at 0.5.
+    let spec = NetSpec {
+        obs_dim: 1,
+        act_low: vec![-2.0],
+        act_high: vec![2.0],
+        ..Default::default()
+    };
+    let policy = Policy::Continuous(vec![0.5; 2], vec![-10.0; 2], 1);
+    let draw = |eps: &[f64], greedy: bool, seed: u64| {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let (net, env) = sample_actions(&policy, &spec, eps, greedy, &mut rng);
+        let EnvActions::Continuous(env) = env else {
+            panic!("continuous policy, discrete actions")
+        };
+        (net, env)
+    };
+    let spread = |eps: &[f64], row: usize| -> f32 {
+        let xs: Vec<f32> = (0..400).map(|seed| draw(eps, false, seed).0[row]).collect();
+        let mean = xs.iter().sum::<f32>() / xs.len() as f32;
+        (xs.iter().map(|x| (x - mean).powi(2)).sum::<f32>() / xs.len() as f32).sqrt()
+    };
+    // No epsilon: exactly the policy's own sample, as before the noise existed.
+    assert!(spread(&[0.0, 0.0], 0) < 1e-3);
+    assert_eq!(draw(&[], false, 7), draw(&[0.0, 0.0], false, 7));
+    // Epsilon 0.5 on row 0 only: its spread is about 0.5 (less a little for
+    // the clamp); row 1 keeps the policy's.
+    let s0 = spread(&[0.5, 0.0], 0);
+    assert!((0.35..0.55).contains(&s0), "row 0 spread {s0}");
+    assert!(spread(&[0.5, 0.0], 1) < 1e-3);
+    // Large noise stays inside the box: network actions in [-1, 1], the
+    // environment's in [low, high], some of them on the bounds.
+    let (mut hits, mut all_in) = (0, true);
+    for seed in 0..200 {
+        let (net, env) = draw(&[1.0, 1.0], false, seed);
+        all_in &= net.iter().all(|x| (-1.0..=1.0).contains(x));
+        all_in &= env.iter().all(|x| (-2.0..=2.0).contains(x));
+        hits += net.iter().filter(|x| x.abs() == 1.0).count();
+    }
+    assert!(all_in && hits > 0, "clamped onto the bounds {hits} times");
+    // The mode ignores epsilon.
+    let (net, _) = draw(&[1.0, 1.0], true, 0);
+    assert_eq!(net, vec![0.5f32.tanh(); 2]);
+}
+
+#[test]
 fn tanh_gaussian_log_prob_matches_the_sampler() {
     tch::manual_seed(3);
     let mean = Tensor::randn([4, 5, 2], (Kind::Float, Device::Cpu));
