@@ -560,22 +560,29 @@ fn overspent_walk() -> (Trajectory, NetSpec) {
     (t, spec)
 }
 
-#[test]
-fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
-    let (t, spec) = overspent_walk();
+/// A config whose over-budget price (`form`, 2 per unit of cost) starts at
+/// update 100, the multiplier held at 0; checks nothing is priced before.
+fn priced_from_update_100(form: PenaltyForm) -> EppoConfig {
     let mut cfg = tiny();
-    cfg.penalty = PenaltyForm::Saute;
+    cfg.penalty = form;
     cfg.lambda_lr = 0.0;
     cfg.lambda_init = 0.0;
-    cfg.saute_unsafe_reward = -0.25;
     cfg.lambda_warmup_updates = 100;
-    cfg.validate().unwrap();
     cfg.over_budget_cost_price = 2.0;
     assert_eq!(
         cfg.shaping(99).over_budget,
         None,
         "not before the constraint"
     );
+    cfg
+}
+
+#[test]
+fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
+    let (t, spec) = overspent_walk();
+    let mut cfg = priced_from_update_100(PenaltyForm::Saute);
+    cfg.saute_unsafe_reward = -0.25;
+    cfg.validate().unwrap();
     assert_eq!(
         cfg.shaping(100).over_budget,
         Some(OverBudget {
@@ -658,18 +665,8 @@ fn saute_refuses_a_multiplier_that_moves() {
 #[test]
 fn excess_price_charges_each_unit_past_the_budget_and_keeps_the_goal() {
     let (t, spec) = overspent_walk();
-    let mut cfg = tiny();
-    cfg.penalty = PenaltyForm::Excess;
-    cfg.lambda_lr = 0.0;
-    cfg.lambda_init = 0.0;
-    cfg.lambda_warmup_updates = 100;
-    cfg.over_budget_cost_price = 2.0;
+    let mut cfg = priced_from_update_100(PenaltyForm::Excess);
     cfg.validate().unwrap();
-    assert_eq!(
-        cfg.shaping(99).over_budget,
-        None,
-        "not before the constraint"
-    );
     let shaping = cfg.shaping(100);
     assert_eq!(
         shaping.over_budget,
