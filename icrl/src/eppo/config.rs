@@ -257,6 +257,12 @@ pub struct EppoConfig {
     /// Updates over which `novelty_bonus` anneals linearly to 0 (0: constant).
     #[serde(default)]
     pub novelty_anneal_updates: u64,
+    /// `penalty = "excess"`: pay the novelty bonus only on steps that leave
+    /// the episode within its budget, once the constraint is on. A bonus
+    /// paid past the budget outbids the excess price, and search ignored the
+    /// budget (results/eppo_darkroom_budget, ex4). false: paid everywhere.
+    #[serde(default)]
+    pub novelty_within_budget: bool,
     /// Which steps the actor's cost penalty lambda x Qc weighs (issue 18).
     #[serde(default)]
     pub penalty: PenaltyForm,
@@ -559,6 +565,15 @@ impl EppoConfig {
                 self.over_budget_cost_price
             ));
         }
+        if self.novelty_within_budget
+            && (self.penalty != PenaltyForm::Excess || self.novelty_bonus == 0.0)
+        {
+            return bad(
+                "novelty_within_budget = true needs penalty = \"excess\" and novelty_bonus > 0 \
+                 (it withholds the bonus on the steps that form prices): set both, or drop it"
+                    .to_string(),
+            );
+        }
         if let Some(r) = self.replay_ratio
             && !(r.is_finite() && r > 0.0)
         {
@@ -678,10 +693,12 @@ impl EppoConfig {
                 PenaltyForm::Saute => Some(OverBudget {
                     replaced_reward: Some(self.saute_unsafe_reward as f32),
                     cost_price,
+                    pays_novelty: false,
                 }),
                 PenaltyForm::Excess => Some(OverBudget {
                     replaced_reward: None,
                     cost_price,
+                    pays_novelty: !self.novelty_within_budget,
                 }),
                 PenaltyForm::Hindsight | PenaltyForm::Hinge => None,
             },

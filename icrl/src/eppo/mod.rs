@@ -74,7 +74,8 @@
 //! until measured: behaviour noise capped once a trajectory has found its goal
 //! (`eps_after_success`), a critic-only bonus for cells new to the trajectory
 //! until its first success (`novelty_bonus`, annealed over
-//! `novelty_anneal_updates`), the actor's penalty at decision time,
+//! `novelty_anneal_updates`; with the excess price, paid only within the
+//! budget: `novelty_within_budget`), the actor's penalty at decision time,
 //! max(0, Qc - CTG_t), instead of Algorithm 1's hindsight flag
 //! (`penalty = "hinge"`), and no multiplier at all: once an episode has spent
 //! its budget, the critics' reward for its remaining steps is

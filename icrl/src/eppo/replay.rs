@@ -249,11 +249,13 @@ pub(super) struct Shaping {
 
 /// The reward of a step taken over budget: `r - cost_price x c`, where r is
 /// `replaced_reward` (Saute: the collected, dense and novelty rewards
-/// dropped) or, if `None`, the step's shaped reward as usual.
+/// dropped) or, if `None`, the step's shaped reward as usual, less the
+/// novelty bonus unless `pays_novelty`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub(super) struct OverBudget {
     pub(super) replaced_reward: Option<f32>,
     pub(super) cost_price: f32,
+    pub(super) pays_novelty: bool,
 }
 
 /// A batch of windows of `trajs`, the critics' rewards shaped by `shaping`.
@@ -345,10 +347,12 @@ pub(super) fn make_batch(
                 dense_reward(t, step, spec, cfg)
             };
             let budget_spent = t.ctg[step] - t.costs[step] < 0.0;
-            let shaped = t.rewards[step] + dense + shaping.novelty * novel[step];
+            let novelty = shaping.novelty * novel[step];
+            let shaped = t.rewards[step] + dense + novelty;
             let reward = match shaping.over_budget {
                 Some(o) if budget_spent => {
-                    o.replaced_reward.unwrap_or(shaped) - o.cost_price * t.costs[step]
+                    let kept = if o.pays_novelty { shaped } else { shaped - novelty };
+                    o.replaced_reward.unwrap_or(kept) - o.cost_price * t.costs[step]
                 }
                 _ => shaped,
             };

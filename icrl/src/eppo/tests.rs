@@ -587,7 +587,8 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
         cfg.shaping(100).over_budget,
         Some(OverBudget {
             replaced_reward: Some(-0.25),
-            cost_price: 2.0
+            cost_price: 2.0,
+            pays_novelty: false
         })
     );
     let over_budget = |reward: f32, cost_price: f32| Shaping {
@@ -595,6 +596,7 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
         over_budget: Some(OverBudget {
             replaced_reward: Some(reward),
             cost_price,
+            pays_novelty: false,
         }),
     };
     let batch = |shaping: Shaping| {
@@ -672,7 +674,8 @@ fn excess_price_charges_each_unit_past_the_budget_and_keeps_the_goal() {
         shaping.over_budget,
         Some(OverBudget {
             replaced_reward: None,
-            cost_price: 2.0
+            cost_price: 2.0,
+            pays_novelty: true
         })
     );
     let mut rng = ChaCha8Rng::seed_from_u64(0);
@@ -713,6 +716,48 @@ fn excess_price_charges_each_unit_past_the_budget_and_keeps_the_goal() {
         err.contains("penalty = \"excess\"") && err.contains("lambda_lr = 0"),
         "{err}"
     );
+}
+
+#[test]
+fn novelty_within_budget_withholds_the_bonus_only_past_the_budget() {
+    let (t, spec) = overspent_walk();
+    let rewards = |within: bool| {
+        let mut cfg = priced_from_update_100(PenaltyForm::Excess);
+        cfg.novelty_bonus = 0.1;
+        cfg.novelty_within_budget = within;
+        cfg.validate().unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let batch = make_batch(&[&t], &cfg, &spec, cfg.shaping(100), &mut rng, Device::Cpu);
+        let scale = cfg.reward_scale as f32;
+        to_vec(&batch.rewards)
+            .iter()
+            .map(|r| (r / scale * 100.0).round() / 100.0)
+            .collect::<Vec<f32>>()
+    };
+    // New cells at steps 0, 2 and 4; the budget is spent at steps 2-4.
+    assert_eq!(
+        rewards(false),
+        vec![0.1, 0.0, -1.9, -4.0, 1.1, 0.0, 0.0, 0.0]
+    );
+    assert_eq!(
+        rewards(true),
+        vec![0.1, 0.0, -2.0, -4.0, 1.0, 0.0, 0.0, 0.0],
+        "the bonus stays within the budget and goes past it"
+    );
+    // Before the constraint nothing is priced and the bonus is paid.
+    let mut cfg = priced_from_update_100(PenaltyForm::Excess);
+    cfg.novelty_bonus = 0.1;
+    cfg.novelty_within_budget = true;
+    assert_eq!(cfg.shaping(99).over_budget, None);
+    // Refused where it would do nothing.
+    cfg.novelty_bonus = 0.0;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(err.contains("novelty_within_budget"), "{err}");
+    cfg.novelty_bonus = 0.1;
+    cfg.penalty = PenaltyForm::Hindsight;
+    cfg.over_budget_cost_price = 0.0;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(err.contains("penalty = \"excess\""), "{err}");
 }
 
 #[test]
