@@ -351,7 +351,11 @@ pub(super) fn make_batch(
             let shaped = t.rewards[step] + dense + novelty;
             let reward = match shaping.over_budget {
                 Some(o) if budget_spent => {
-                    let kept = if o.pays_novelty { shaped } else { shaped - novelty };
+                    let kept = if o.pays_novelty {
+                        shaped
+                    } else {
+                        shaped - novelty
+                    };
                     o.replaced_reward.unwrap_or(kept) - o.cost_price * t.costs[step]
                 }
                 _ => shaped,
