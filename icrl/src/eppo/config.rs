@@ -258,9 +258,10 @@ pub struct EppoConfig {
     #[serde(default)]
     pub novelty_anneal_updates: u64,
     /// `penalty = "excess"`: pay the novelty bonus only on steps that leave
-    /// the episode within its budget, once the constraint is on. A bonus
-    /// paid past the budget outbids the excess price, and search ignored the
-    /// budget (results/eppo_darkroom_budget, ex4). false: paid everywhere.
+    /// the episode within its budget, once the constraint is on. Tried
+    /// because, paid everywhere, the bonus let search ignore the budget
+    /// (results/eppo_darkroom_budget, ex4); withheld, it did not help (ex5),
+    /// so it is off by default. false: paid everywhere.
     #[serde(default)]
     pub novelty_within_budget: bool,
     /// Which steps the actor's cost penalty lambda x Qc weighs (issue 18).

@@ -721,13 +721,14 @@ fn excess_price_charges_each_unit_past_the_budget_and_keeps_the_goal() {
 #[test]
 fn novelty_within_budget_withholds_the_bonus_only_past_the_budget() {
     let (t, spec) = overspent_walk();
-    let rewards = |within: bool| {
+    let rewards_at = |updates: u64, within: bool| {
         let mut cfg = priced_from_update_100(PenaltyForm::Excess);
         cfg.novelty_bonus = 0.1;
         cfg.novelty_within_budget = within;
         cfg.validate().unwrap();
         let mut rng = ChaCha8Rng::seed_from_u64(0);
-        let batch = make_batch(&[&t], &cfg, &spec, cfg.shaping(100), &mut rng, Device::Cpu);
+        let shaping = cfg.shaping(updates);
+        let batch = make_batch(&[&t], &cfg, &spec, shaping, &mut rng, Device::Cpu);
         let scale = cfg.reward_scale as f32;
         to_vec(&batch.rewards)
             .iter()
@@ -736,20 +737,22 @@ fn novelty_within_budget_withholds_the_bonus_only_past_the_budget() {
     };
     // New cells at steps 0, 2 and 4; the budget is spent at steps 2-4.
     assert_eq!(
-        rewards(false),
+        rewards_at(100, false),
         vec![0.1, 0.0, -1.9, -4.0, 1.1, 0.0, 0.0, 0.0]
     );
     assert_eq!(
-        rewards(true),
+        rewards_at(100, true),
         vec![0.1, 0.0, -2.0, -4.0, 1.0, 0.0, 0.0, 0.0],
-        "the bonus stays within the budget and goes past it"
+        "the bonus is paid within the budget and withheld past it"
     );
-    // Before the constraint nothing is priced and the bonus is paid.
-    let mut cfg = priced_from_update_100(PenaltyForm::Excess);
-    cfg.novelty_bonus = 0.1;
-    cfg.novelty_within_budget = true;
-    assert_eq!(cfg.shaping(99).over_budget, None);
+    assert_eq!(
+        rewards_at(99, true),
+        vec![0.1, 0.0, 0.1, 0.0, 1.1, 0.0, 0.0, 0.0],
+        "before the constraint nothing is priced and the bonus is paid"
+    );
     // Refused where it would do nothing.
+    let mut cfg = priced_from_update_100(PenaltyForm::Excess);
+    cfg.novelty_within_budget = true;
     cfg.novelty_bonus = 0.0;
     let err = cfg.validate().unwrap_err().to_string();
     assert!(err.contains("novelty_within_budget"), "{err}");
