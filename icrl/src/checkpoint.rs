@@ -112,6 +112,33 @@ pub struct Manifest {
     pub sha256: BTreeMap<String, String>,
 }
 
+/// Records a new `max_len` in the manifest of a forked checkpoint whose model
+/// has fixed sinusoidal positions (its weights do not depend on it). The
+/// manifest is replaced, not written through: it is a hard link to the
+/// original checkpoint's.
+pub fn record_forked_max_len(step: &Path, max_len: i64) -> Result<(), CheckpointError> {
+    let mut manifest = read_manifest(step)?;
+    let path = step.join(MANIFEST);
+    let len = manifest
+        .model
+        .get_mut("transformer")
+        .and_then(|t| t.get_mut("max_len"))
+        .ok_or_else(|| CheckpointError::Invalid {
+            path: path.clone(),
+            problem: "the manifest's model has no transformer.max_len".into(),
+            fix: "fork with the original max_len, or start a new run".into(),
+        })?;
+    *len = max_len.into();
+    let tmp = step.join(format!(".{MANIFEST}.tmp"));
+    let text = serde_json::to_string_pretty(&manifest).map_err(|e| CheckpointError::Invalid {
+        path: tmp.clone(),
+        problem: e.to_string(),
+        fix: "report this bug".into(),
+    })?;
+    fs::write(&tmp, text).map_err(io(&tmp))?;
+    fs::rename(&tmp, &path).map_err(io(&path))
+}
+
 /// SHA-256 of a file, lower-case hex.
 pub fn sha256_file(path: &Path) -> Result<String, CheckpointError> {
     let mut file = fs::File::open(path).map_err(io(path))?;

@@ -458,6 +458,35 @@ fn an_older_checkpoint_is_forked_into_a_new_run_not_resumed_in_place() {
         "--set",
         "total_updates=6",
     ]));
+    // Sinusoidal positions hold no weights: a fork may lengthen the context
+    // to more episodes, and the original's manifest keeps its own length.
+    let longer = dir.join("longer");
+    let o = pretrain(&[
+        "--resume",
+        &step2,
+        "--fork",
+        &s(&longer),
+        "--set",
+        "model.max_len=24",
+        "--set",
+        "k_max=4",
+        "--set",
+        "total_updates=4",
+    ]);
+    succeeded(&o);
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("model.max_len: 12 -> 24"), "{err}");
+    let branch = std::fs::read_dir(&longer)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    let max_len = |step: &Path| {
+        icrl::checkpoint::read_manifest(step).unwrap().model["transformer"]["max_len"].as_i64()
+    };
+    assert_eq!(max_len(&branch.join("checkpoints/step_4")), Some(24));
+    assert_eq!(max_len(&run.join("checkpoints/step_2")), Some(12));
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

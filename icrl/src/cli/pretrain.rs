@@ -210,7 +210,8 @@ const FORK_KEEPS: [&str; 6] = [
 
 /// `pretrain --resume CKPT --fork OUT`: branches a new run under `out` from
 /// CKPT (a run folder: its latest checkpoint) with the `sets` applied to its
-/// configuration (any setting but the network's shape), leaving the original
+/// configuration (any setting but the network's shape; `model.max_len` too
+/// where positions are sinusoidal), leaving the original
 /// run as it is; the branch starts with the weights, optimizer, multiplier
 /// and counters of CKPT and its metrics up to there. Returns the new run
 /// folder, which the caller resumes.
@@ -244,9 +245,25 @@ pub fn fork(
         fix: "correct the --set".into(),
     })?;
     let changes = setting_changes(&saved, &table);
+    // Fixed sinusoids hold no weights, so their model takes a longer (or
+    // shorter) context as it is: a fork may change the number of episodes.
+    let sinusoidal = |t: &toml::Table| {
+        t.get("model")
+            .and_then(|m| m.get("positions"))
+            .and_then(toml::Value::as_str)
+            == Some("sinusoidal")
+    };
+    let new_max_len = changes
+        .iter()
+        .any(|(key, _)| key == "model.max_len")
+        .then(|| table.get("model").and_then(|m| m.get("max_len")))
+        .flatten()
+        .and_then(toml::Value::as_integer);
+    let max_len_free = sinusoidal(&saved) && sinusoidal(&table);
     let kept: Vec<&str> = changes
         .iter()
         .filter(|(key, _)| FORK_KEEPS.iter().any(|k| key.starts_with(k)))
+        .filter(|(key, _)| !(max_len_free && key == "model.max_len"))
         .map(|(_, c)| c.as_str())
         .collect();
     if !kept.is_empty() {
@@ -267,7 +284,10 @@ pub fn fork(
         .ok_or_else(|| invalid("no seed (a whole number of 0 or more)".into()))?;
     let text = toml::to_string(&table).map_err(|e| invalid(e.to_string()))?;
     let key = if method == "ad" { "update" } else { "updates" };
-    let (new, _) = run.fork(&ckpt, out, seed, &text, key)?;
+    let (new, step) = run.fork(&ckpt, out, seed, &text, key)?;
+    if let Some(max_len) = new_max_len.filter(|_| max_len_free) {
+        crate::checkpoint::record_forked_max_len(&step, max_len)?;
+    }
     let changes: Vec<String> = changes.into_iter().map(|(_, c)| c).collect();
     eprintln!(
         "forked {} into {}{}",
