@@ -257,13 +257,16 @@ pub struct EppoConfig {
     /// Updates over which `novelty_bonus` anneals linearly to 0 (0: constant).
     #[serde(default)]
     pub novelty_anneal_updates: u64,
-    /// `penalty = "excess"`: pay the novelty bonus only on steps that leave
-    /// the episode within its budget, once the constraint is on. Tried
-    /// because, paid everywhere, the bonus let search ignore the budget
-    /// (results/eppo_darkroom_budget, ex4); withheld, it did not help (ex5),
-    /// so it is off by default. false: paid everywhere.
-    #[serde(default)]
-    pub novelty_within_budget: bool,
+    /// How the episode's budget gates the novelty bonus (issue 18). Paid
+    /// everywhere, the bonus let search ignore the budget
+    /// (results/eppo_darkroom_budget, ex4). Older configs'
+    /// `novelty_within_budget = true` reads as `within_budget`.
+    #[serde(
+        default,
+        alias = "novelty_within_budget",
+        deserialize_with = "novelty_budget_or_bool"
+    )]
+    pub novelty_budget: NoveltyBudget,
     /// Which steps the actor's cost penalty lambda x Qc weighs (issue 18).
     #[serde(default)]
     pub penalty: PenaltyForm,
@@ -311,6 +314,39 @@ pub struct EppoConfig {
     /// BENCHMARKS.md).
     #[serde(default)]
     pub learner_threads: i32,
+}
+
+/// How the episode's budget gates the novelty bonus.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum NoveltyBudget {
+    /// Paid on every novel step.
+    #[default]
+    Always,
+    /// `penalty = "excess"`: withheld on the steps that leave the episode
+    /// over budget, once the constraint is on (ex5: it did not help).
+    WithinBudget,
+    /// Scaled by the share of the episode's budget left before the step,
+    /// clamp(CTG_t / budget, 0, 1): a larger budget funds a longer search,
+    /// a spent one none, so search and its cost follow the budget.
+    RemainingShare,
+}
+
+/// `novelty_budget`, or the older `novelty_within_budget` flag.
+fn novelty_budget_or_bool<'de, D: serde::Deserializer<'de>>(
+    d: D,
+) -> Result<NoveltyBudget, D::Error> {
+    #[derive(Deserialize)]
+    #[serde(untagged)]
+    enum Either {
+        Flag(bool),
+        Form(NoveltyBudget),
+    }
+    Ok(match Either::deserialize(d)? {
+        Either::Flag(true) => NoveltyBudget::WithinBudget,
+        Either::Flag(false) => NoveltyBudget::Always,
+        Either::Form(form) => form,
+    })
 }
 
 /// Where the actor pays lambda x reward_scale x Qc.
@@ -566,12 +602,17 @@ impl EppoConfig {
                 self.over_budget_cost_price
             ));
         }
-        if self.novelty_within_budget
-            && (self.penalty != PenaltyForm::Excess || self.novelty_bonus == 0.0)
+        if self.novelty_budget != NoveltyBudget::Always && self.novelty_bonus == 0.0 {
+            return bad(format!(
+                "novelty_budget = {:?} gates a bonus that is off: set novelty_bonus > 0, or drop it",
+                self.novelty_budget
+            ));
+        }
+        if self.novelty_budget == NoveltyBudget::WithinBudget && self.penalty != PenaltyForm::Excess
         {
             return bad(
-                "novelty_within_budget = true needs penalty = \"excess\" and novelty_bonus > 0 \
-                 (it withholds the bonus on the steps that form prices): set both, or drop it"
+                "novelty_budget = \"within_budget\" needs penalty = \"excess\" (it withholds \
+                 the bonus on the steps that form prices): set it, or drop it"
                     .to_string(),
             );
         }
@@ -699,7 +740,7 @@ impl EppoConfig {
                 PenaltyForm::Excess => Some(OverBudget {
                     replaced_reward: None,
                     cost_price,
-                    pays_novelty: !self.novelty_within_budget,
+                    pays_novelty: self.novelty_budget != NoveltyBudget::WithinBudget,
                 }),
                 PenaltyForm::Hindsight | PenaltyForm::Hinge => None,
             },

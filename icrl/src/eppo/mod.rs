@@ -74,8 +74,9 @@
 //! until measured: behaviour noise capped once a trajectory has found its goal
 //! (`eps_after_success`), a critic-only bonus for cells new to the trajectory
 //! until its first success (`novelty_bonus`, annealed over
-//! `novelty_anneal_updates`; with the excess price, paid only within the
-//! budget: `novelty_within_budget`), the actor's penalty at decision time,
+//! `novelty_anneal_updates`; gated by the budget with `novelty_budget`:
+//! withheld past it, or scaled by the share of it left), the actor's
+//! penalty at decision time,
 //! max(0, Qc - CTG_t), instead of Algorithm 1's hindsight flag
 //! (`penalty = "hinge"`), and no multiplier at all: once an episode has spent
 //! its budget, the critics' reward for its remaining steps is
@@ -128,7 +129,8 @@ pub use agent::EppoAgent;
 pub use checkpoint::recorded_pretrain_tasks;
 pub use collect::{RoundStats, search_rates};
 pub use config::{
-    EppoConfig, EppoError, Exploration, PenaltyForm, ViolationSignal, memory_estimate, parse_device,
+    EppoConfig, EppoError, Exploration, NoveltyBudget, PenaltyForm, ViolationSignal,
+    memory_estimate, parse_device,
 };
 pub use losses::{UpdateStats, lambda_update};
 pub use multiplier::{Gains, Multiplier};

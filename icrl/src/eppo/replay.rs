@@ -11,7 +11,7 @@ use tch::{Device, Tensor};
 
 use safety_envs::GoalRule;
 
-use super::config::{EppoConfig, ViolationSignal};
+use super::config::{EppoConfig, NoveltyBudget, ViolationSignal};
 use super::net::NetSpec;
 use crate::tokens::{self, StepToken};
 
@@ -347,7 +347,11 @@ pub(super) fn make_batch(
                 dense_reward(t, step, spec, cfg)
             };
             let budget_spent = t.ctg[step] - t.costs[step] < 0.0;
-            let novelty = shaping.novelty * novel[step];
+            let share = match cfg.novelty_budget {
+                NoveltyBudget::RemainingShare => (t.ctg[step] / t.budget).clamp(0.0, 1.0),
+                NoveltyBudget::Always | NoveltyBudget::WithinBudget => 1.0,
+            };
+            let novelty = shaping.novelty * novel[step] * share;
             let shaped = t.rewards[step] + dense + novelty;
             let reward = match shaping.over_budget {
                 Some(o) if budget_spent => {

@@ -724,7 +724,9 @@ fn novelty_within_budget_withholds_the_bonus_only_past_the_budget() {
     let rewards_at = |updates: u64, within: bool| {
         let mut cfg = priced_from_update_100(PenaltyForm::Excess);
         cfg.novelty_bonus = 0.1;
-        cfg.novelty_within_budget = within;
+        if within {
+            cfg.novelty_budget = NoveltyBudget::WithinBudget;
+        }
         cfg.validate().unwrap();
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let shaping = cfg.shaping(updates);
@@ -752,15 +754,89 @@ fn novelty_within_budget_withholds_the_bonus_only_past_the_budget() {
     );
     // Refused where it would do nothing.
     let mut cfg = priced_from_update_100(PenaltyForm::Excess);
-    cfg.novelty_within_budget = true;
+    cfg.novelty_budget = NoveltyBudget::WithinBudget;
     cfg.novelty_bonus = 0.0;
     let err = cfg.validate().unwrap_err().to_string();
-    assert!(err.contains("novelty_within_budget"), "{err}");
+    assert!(err.contains("novelty_budget"), "{err}");
     cfg.novelty_bonus = 0.1;
     cfg.penalty = PenaltyForm::Hindsight;
     cfg.over_budget_cost_price = 0.0;
     let err = cfg.validate().unwrap_err().to_string();
     assert!(err.contains("penalty = \"excess\""), "{err}");
+}
+
+#[test]
+fn novelty_by_remaining_share_scales_the_bonus_by_the_budget_left() {
+    let (mut t, spec) = overspent_walk();
+    // Budget 2: 2 left at steps 0-1, 1 at step 2 (after a cost of 1), a new
+    // episode at step 3 spends all of it, so none is left at step 4.
+    t.budget = 2.0;
+    t.ctg = vec![2.0, 2.0, 1.0, 2.0, 0.0, 2.0, 2.0, 2.0];
+    let rewards_at = |t: &Trajectory, updates: u64, form: NoveltyBudget| {
+        let mut cfg = priced_from_update_100(PenaltyForm::Excess);
+        cfg.novelty_bonus = 0.1;
+        cfg.novelty_budget = form;
+        cfg.validate().unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let batch = make_batch(
+            &[t],
+            &cfg,
+            &spec,
+            cfg.shaping(updates),
+            &mut rng,
+            Device::Cpu,
+        );
+        let scale = cfg.reward_scale as f32;
+        to_vec(&batch.rewards)
+            .iter()
+            .map(|r| (r / scale * 1000.0).round() / 1000.0)
+            .collect::<Vec<f32>>()
+    };
+    // New cells at steps 0, 2 and 4, with all, half and none of the budget left.
+    for updates in [99, 100] {
+        assert_eq!(
+            rewards_at(&t, updates, NoveltyBudget::RemainingShare),
+            vec![0.1, 0.0, 0.05, 0.0, 1.0, 0.0, 0.0, 0.0],
+            "update {updates}"
+        );
+    }
+    assert_eq!(
+        rewards_at(&t, 100, NoveltyBudget::Always),
+        vec![0.1, 0.0, 0.1, 0.0, 1.1, 0.0, 0.0, 0.0],
+        "ungated, the full bonus at every new cell"
+    );
+    // A larger share than the whole budget (none here) or an overspent one
+    // is clamped: a budget of 1 leaves a negative CTG at step 4.
+    t.budget = 1.0;
+    t.ctg = vec![1.0, 1.0, 0.0, 1.0, -1.0, 1.0, 1.0, 1.0];
+    assert_eq!(
+        rewards_at(&t, 99, NoveltyBudget::RemainingShare),
+        vec![0.1, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
+    );
+    let mut cfg = priced_from_update_100(PenaltyForm::Hindsight);
+    cfg.novelty_budget = NoveltyBudget::RemainingShare;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(err.contains("novelty_bonus > 0"), "{err}");
+}
+
+#[test]
+fn an_older_novelty_within_budget_flag_reads_as_the_gate() {
+    let text = toml::to_string(&tiny()).unwrap();
+    assert!(text.contains("novelty_budget = \"always\""), "{text}");
+    let read = |line: &str| {
+        toml::from_str::<EppoConfig>(&text.replace("novelty_budget = \"always\"", line))
+            .unwrap()
+            .novelty_budget
+    };
+    assert_eq!(
+        read("novelty_within_budget = true"),
+        NoveltyBudget::WithinBudget
+    );
+    assert_eq!(read("novelty_within_budget = false"), NoveltyBudget::Always);
+    assert_eq!(
+        read("novelty_budget = \"remaining_share\""),
+        NoveltyBudget::RemainingShare
+    );
 }
 
 #[test]
