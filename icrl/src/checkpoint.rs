@@ -130,13 +130,21 @@ pub fn record_forked_max_len(step: &Path, max_len: i64) -> Result<(), Checkpoint
         })?;
     *len = max_len.into();
     let tmp = step.join(format!(".{MANIFEST}.tmp"));
-    let text = serde_json::to_string_pretty(&manifest).map_err(|e| CheckpointError::Invalid {
-        path: tmp.clone(),
+    write_manifest(&tmp, &manifest)?;
+    fs::rename(&tmp, &path).map_err(io(&path))
+}
+
+/// Writes `manifest` to `path` and syncs it, so that a rename that
+/// publishes it never publishes an empty file.
+fn write_manifest(path: &Path, manifest: &Manifest) -> Result<(), CheckpointError> {
+    let text = serde_json::to_string_pretty(manifest).map_err(|e| CheckpointError::Invalid {
+        path: path.to_path_buf(),
         problem: e.to_string(),
         fix: "report this bug".into(),
     })?;
-    fs::write(&tmp, text).map_err(io(&tmp))?;
-    fs::rename(&tmp, &path).map_err(io(&path))
+    let mut f = fs::File::create(path).map_err(io(path))?;
+    f.write_all(text.as_bytes()).map_err(io(path))?;
+    f.sync_all().map_err(io(path))
 }
 
 /// SHA-256 of a file, lower-case hex.
@@ -831,16 +839,7 @@ impl RunDir {
             files,
             sha256,
         };
-        let mpath = tmp.join(MANIFEST);
-        let text =
-            serde_json::to_string_pretty(&manifest).map_err(|e| CheckpointError::Invalid {
-                path: mpath.clone(),
-                problem: e.to_string(),
-                fix: "report this bug".into(),
-            })?;
-        let mut f = fs::File::create(&mpath).map_err(io(&mpath))?;
-        f.write_all(text.as_bytes()).map_err(io(&mpath))?;
-        f.sync_all().map_err(io(&mpath))?;
+        write_manifest(&tmp.join(MANIFEST), &manifest)?;
         if dest.exists() {
             remove_checkpoint(dest)?;
         }

@@ -247,23 +247,22 @@ pub fn fork(
     let changes = setting_changes(&saved, &table);
     // Fixed sinusoids hold no weights, so their model takes a longer (or
     // shorter) context as it is: a fork may change the number of episodes.
-    let sinusoidal = |t: &toml::Table| {
-        t.get("model")
-            .and_then(|m| m.get("positions"))
-            .and_then(toml::Value::as_str)
-            == Some("sinusoidal")
-    };
+    // (A change of `model.positions` itself is refused below.)
+    let sinusoidal = saved
+        .get("model")
+        .and_then(|m| m.get("positions"))
+        .and_then(toml::Value::as_str)
+        == Some("sinusoidal");
+    let free = |key: &str| sinusoidal && key == "model.max_len";
     let new_max_len = changes
         .iter()
-        .any(|(key, _)| key == "model.max_len")
+        .any(|(key, _)| free(key))
         .then(|| table.get("model").and_then(|m| m.get("max_len")))
         .flatten()
         .and_then(toml::Value::as_integer);
-    let max_len_free = sinusoidal(&saved) && sinusoidal(&table);
     let kept: Vec<&str> = changes
         .iter()
-        .filter(|(key, _)| FORK_KEEPS.iter().any(|k| key.starts_with(k)))
-        .filter(|(key, _)| !(max_len_free && key == "model.max_len"))
+        .filter(|(key, _)| FORK_KEEPS.iter().any(|k| key.starts_with(k)) && !free(key))
         .map(|(_, c)| c.as_str())
         .collect();
     if !kept.is_empty() {
@@ -285,7 +284,7 @@ pub fn fork(
     let text = toml::to_string(&table).map_err(|e| invalid(e.to_string()))?;
     let key = if method == "ad" { "update" } else { "updates" };
     let (new, step) = run.fork(&ckpt, out, seed, &text, key)?;
-    if let Some(max_len) = new_max_len.filter(|_| max_len_free) {
+    if let Some(max_len) = new_max_len {
         crate::checkpoint::record_forked_max_len(&step, max_len)?;
     }
     let changes: Vec<String> = changes.into_iter().map(|(_, c)| c).collect();

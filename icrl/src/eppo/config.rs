@@ -603,10 +603,11 @@ impl EppoConfig {
             ));
         }
         if self.novelty_budget != NoveltyBudget::Always && self.novelty_bonus == 0.0 {
-            return bad(format!(
-                "novelty_budget = {:?} gates a bonus that is off: set novelty_bonus > 0, or drop it",
-                self.novelty_budget
-            ));
+            return bad(
+                "novelty_budget gates the novelty bonus, which is off (novelty_bonus = 0): set \
+                 novelty_bonus > 0, or drop novelty_budget"
+                    .to_string(),
+            );
         }
         if self.novelty_budget == NoveltyBudget::WithinBudget && self.penalty != PenaltyForm::Excess
         {
