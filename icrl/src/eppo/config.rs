@@ -227,6 +227,16 @@ pub struct EppoConfig {
     /// evaluated (the tasks hide the goal). Off in every preset.
     #[serde(default)]
     pub goal_in_observation: bool,
+    /// Add to each token's embedding a sinusoid of the step's index within
+    /// its episode (0 at the episode's first step), beside the model's
+    /// position in the whole trajectory. Every robot episode starts from the
+    /// same pose, so going back to a found goal is largely repeating a route
+    /// (results/eppo_point_ladder, "K = 10"): with this, the same moment of
+    /// an earlier episode is one attention match away. AMAGO puts the time
+    /// step in its token likewise. The table holds no weights, so a
+    /// checkpoint may be forked with it switched on. false: off (the paper).
+    #[serde(default)]
+    pub episode_positions: bool,
     /// A dense reward for the critics during pretraining only, after PEARL's
     /// sparse-reward point robot: each step's TD reward also gets this times
     /// the decrease in distance to the goal (potential-based shaping, which
@@ -568,6 +578,12 @@ impl EppoConfig {
                 "target_entropy = {t} needs a finite target and a positive starting \
                  entropy_coef (got {}): the weight moves in log space",
                 self.entropy_coef
+            ));
+        }
+        if self.episode_positions && self.model.d_model % 2 != 0 {
+            return bad(format!(
+                "episode_positions = true needs an even model.d_model (sine and cosine pairs), got {}",
+                self.model.d_model
             ));
         }
         if self.dense_reward_after_goal && self.dense_reward_coef == 0.0 {

@@ -66,7 +66,10 @@
 //! (`target_entropy`: the entropy weight tuned so that a continuous actor
 //! cannot collapse onto its action bounds), an actor that reads a detached
 //! trajectory encoding (`actor_detach_encoder`: only the critics shape the
-//! shared transformer) and, as a diagnostic never
+//! shared transformer), a sinusoid of each step's index within its episode
+//! added to the token's embedding (`episode_positions`: every episode starts
+//! from the same pose, so the same moment of a successful episode is the
+//! one to recall) and, as a diagnostic never
 //! evaluated, the goal in the observation (`goal_in_observation`: driving to
 //! a position without recalling it).
 //!

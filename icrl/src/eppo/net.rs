@@ -9,7 +9,7 @@ use tch::{Kind, Tensor, nn, nn::Module};
 use safety_envs::Space;
 
 use super::config::{EppoConfig, EppoError};
-use crate::model::{KvCache, Transformer};
+use crate::model::{KvCache, Transformer, sinusoids};
 use crate::tokens;
 
 /// What the networks read and emit, taken from the environment's spaces.
@@ -178,6 +178,9 @@ pub struct EppoNet {
     pub(super) cost_critic: Head,
     /// With `goal_recall_coef` > 0: the goal's position (2) from h.
     pub(super) goal_recall: Option<Head>,
+    /// With `episode_positions`: a sinusoid table indexed by the step's
+    /// index within its episode, (max_len, D); no weights.
+    episode_sinusoid: Option<Tensor>,
     n_critics: i64,
 }
 
@@ -208,22 +211,45 @@ impl EppoNet {
             cost_critic: Head::new(&p / "cost_critic", critic_in, cfg.head_hidden, critic_out),
             goal_recall: (cfg.goal_recall_coef > 0.0)
                 .then(|| Head::new(&p / "goal_recall", d, cfg.head_hidden, 2)),
+            episode_sinusoid: cfg
+                .episode_positions
+                .then(|| sinusoids(cfg.model.max_len, d, p.device())),
             n_critics: cfg.n_critics,
         })
     }
 
-    fn embed(&self, tokens: &Tensor) -> Tensor {
-        self.enc_2.forward(&self.enc_1.forward(tokens).gelu("none"))
+    /// Tokens (B, T, token_dim) -> embeddings (B, T, D); `episode_steps`
+    /// (B, T) int64 indexes the episode sinusoid when it is on.
+    fn embed(&self, tokens: &Tensor, episode_steps: impl FnOnce() -> Tensor) -> Tensor {
+        let x = self.enc_2.forward(&self.enc_1.forward(tokens).gelu("none"));
+        match &self.episode_sinusoid {
+            Some(table) => {
+                let steps = episode_steps();
+                let (b, t) = (steps.size()[0], steps.size()[1]);
+                x + table.index_select(0, &steps.view([-1])).view([b, t, -1])
+            }
+            None => x,
+        }
     }
 
-    /// Whole sequences: tokens (B, T, token_dim) -> h (B, T, D).
+    /// Whole sequences: tokens (B, T, token_dim) -> h (B, T, D). Each
+    /// sequence starts a trajectory, so a step's index within its episode
+    /// is its distance to the last start flag (the token's last entry).
     pub fn encode(&self, tokens: &Tensor, train: bool) -> Result<Tensor, EppoError> {
-        Ok(self.transformer.forward_t(&self.embed(tokens), train)?)
+        let x = self.embed(tokens, || episode_steps(tokens));
+        Ok(self.transformer.forward_t(&x, train)?)
     }
 
-    /// Next steps after the cached ones: tokens (B, 1, token_dim) -> h (B, 1, D).
-    pub fn encode_step(&self, tokens: &Tensor, cache: &mut KvCache) -> Result<Tensor, EppoError> {
-        Ok(self.transformer.forward_step(&self.embed(tokens), cache)?)
+    /// Next steps after the cached ones: tokens (B, 1, token_dim) and each
+    /// row's step index within its episode (B, 1) -> h (B, 1, D).
+    pub fn encode_step(
+        &self,
+        tokens: &Tensor,
+        episode_steps: &Tensor,
+        cache: &mut KvCache,
+    ) -> Result<Tensor, EppoError> {
+        let x = self.embed(tokens, || episode_steps.shallow_clone());
+        Ok(self.transformer.forward_step(&x, cache)?)
     }
 
     /// A fresh KV cache.
@@ -263,6 +289,19 @@ impl EppoNet {
             parts[1].clamp(LOG_STD_MIN, LOG_STD_MAX),
         )
     }
+}
+
+/// Each step's index within its episode, (B, T) int64, from the start
+/// flags in the tokens' last entry; a sequence's first step counts as a
+/// start.
+pub(super) fn episode_steps(tokens: &Tensor) -> Tensor {
+    let (b, t) = (tokens.size()[0], tokens.size()[1]);
+    let index = Tensor::arange(t, (Kind::Int64, tokens.device()))
+        .unsqueeze(0)
+        .expand([b, t], false); // (B, T)
+    let starts = tokens.select(-1, -1).gt(0.5); // (B, T)
+    let last_start = index.where_self(&starts, &index.zeros_like()).cummax(1).0;
+    index - last_start
 }
 
 /// A tanh-squashed Gaussian sample and its log-probability: (a, log_prob) with

@@ -1277,7 +1277,23 @@ fn terminated_and_truncated_reach_the_targets_apart() {
 #[test]
 fn acting_through_the_cache_matches_the_full_forward() {
     let (mut learner, mut venv) = tiny_learner(3);
-    learner.collect(&mut venv).unwrap();
+    acting_matches_the_full_forward(&mut learner, &mut venv);
+}
+
+#[test]
+fn acting_with_episode_positions_matches_the_full_forward() {
+    let mut cfg = tiny();
+    cfg.seed = 3;
+    cfg.episode_positions = true;
+    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+    let mut venv = training_venv(EnvName::DarkRoom, &cfg);
+    acting_matches_the_full_forward(&mut learner, &mut venv);
+}
+
+/// Steps one collected trajectory through the KV cache and compares each
+/// step's policy with the whole trajectory's forward.
+fn acting_matches_the_full_forward(learner: &mut Learner, venv: &mut VecEnv) {
+    learner.collect(venv).unwrap();
     let t = learner.replay.trajectories[0].clone();
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let batch = unshaped_batch(&[&t], &learner.cfg, &learner.spec, &mut rng);
@@ -1324,6 +1340,36 @@ fn acting_through_the_cache_matches_the_full_forward() {
             assert!((x - y).abs() < 1e-5, "step {s}: {p:?} vs {expected:?}");
         }
     }
+}
+
+#[test]
+fn episode_positions_count_steps_from_each_start_and_change_the_encoding() {
+    let mut cfg = tiny();
+    let (learner, _) = tiny_learner(0);
+    let d = learner.spec.token_dim() as i64;
+    // Two sequences of 5 steps: starts at 0 and 3, and at 0 only.
+    let tokens = Tensor::zeros([2, 5, d], (Kind::Float, Device::Cpu));
+    for (row, t) in [(0, 0), (0, 3), (1, 0)] {
+        let _ = tokens.get(row).get(t).get(d - 1).fill_(1.0);
+    }
+    assert_eq!(
+        to_vec(&super::net::episode_steps(&tokens)),
+        vec![0.0, 1.0, 2.0, 0.0, 1.0, 0.0, 1.0, 2.0, 3.0, 4.0]
+    );
+    // The same weights with the sinusoid on encode differently.
+    cfg.episode_positions = true;
+    let mut with = Learner::new(cfg, EnvName::DarkRoom).unwrap();
+    with.vs.copy(&learner.vs).unwrap();
+    let (h0, h1) = tch::no_grad(|| {
+        (
+            learner.net.encode(&tokens, false).unwrap(),
+            with.net.encode(&tokens, false).unwrap(),
+        )
+    });
+    assert!(
+        !h1.allclose(&h0, 1e-4, 1e-4, false),
+        "the sinusoid changed nothing"
+    );
 }
 
 #[test]
