@@ -442,11 +442,10 @@ impl Acting {
         let x = Tensor::from_slice(&self.tokens)
             .view([b as i64, 1, self.spec.token_dim() as i64])
             .to_device(device); // (B, 1, token_dim)
-        let steps = Tensor::from_slice(&self.episode_steps)
-            .view([b as i64, 1])
-            .to_device(device); // (B, 1)
         tch::no_grad(|| {
-            let h = net.encode_step(&x, &steps, &mut self.cache)?.squeeze_dim(1); // (B, 1, D) -> (B, D)
+            let h = net
+                .encode_step(&x, &self.episode_steps, &mut self.cache)?
+                .squeeze_dim(1); // (B, 1, D) -> (B, D)
             Ok(match self.spec.n_actions {
                 Some(n) => {
                     let p = net

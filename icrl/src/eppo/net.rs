@@ -241,14 +241,18 @@ impl EppoNet {
     }
 
     /// Next steps after the cached ones: tokens (B, 1, token_dim) and each
-    /// row's step index within its episode (B, 1) -> h (B, 1, D).
+    /// row's step index within its episode (B) -> h (B, 1, D).
     pub fn encode_step(
         &self,
         tokens: &Tensor,
-        episode_steps: &Tensor,
+        episode_steps: &[i64],
         cache: &mut KvCache,
     ) -> Result<Tensor, EppoError> {
-        let x = self.embed(tokens, || episode_steps.shallow_clone());
+        let x = self.embed(tokens, || {
+            Tensor::from_slice(episode_steps)
+                .view([-1, 1])
+                .to_device(tokens.device()) // (B, 1)
+        });
         Ok(self.transformer.forward_step(&x, cache)?)
     }
 
