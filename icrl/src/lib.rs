@@ -11,6 +11,7 @@
 //! - [`tokens`]: the time-step token both learners feed the transformer.
 //! - [`guard`]: setting ranges, finite-weight checks and the memory estimate.
 //! - [`stop`]: graceful stop on the first SIGINT/SIGTERM.
+//! - [`torch_rng`]: the lock on libtorch's process-wide generator.
 //!
 //! Learners (each a folder whose `mod.rs` reads top to bottom):
 //! - [`eppo`]: EPPO, safe reinforcement pretraining (Algorithm 1), and its frozen agent.
@@ -45,6 +46,7 @@ pub mod stats;
 pub mod stop;
 pub mod task_seeds;
 pub mod tokens;
+pub mod torch_rng;
 
 #[cfg(test)]
 mod reliability_tests;

@@ -477,12 +477,15 @@ mod tests {
 
     #[test]
     fn cached_decoding_equals_full_forward() {
-        tch::manual_seed(0);
         for positions in [Positions::Learned, Positions::Sinusoidal] {
             let vs = VarStore::new(Device::Cpu);
-            let model = Transformer::new(vs.root(), &cfg(positions)).unwrap();
+            let model =
+                crate::torch_rng::seeded(0, || Transformer::new(vs.root(), &cfg(positions)))
+                    .unwrap();
             for len in [1, 2, 7, 40] {
-                let x = Tensor::randn([3, len, 16], (Kind::Float, Device::Cpu));
+                let x = crate::torch_rng::drawing(|| {
+                    Tensor::randn([3, len, 16], (Kind::Float, Device::Cpu))
+                });
                 let full = tch::no_grad(|| model.forward_t(&x, false).unwrap());
                 let mut cache = model.new_cache();
                 let steps: Vec<Tensor> = (0..len)
@@ -514,10 +517,14 @@ mod tests {
 
     #[test]
     fn future_steps_do_not_change_past_outputs() {
-        tch::manual_seed(1);
         let vs = VarStore::new(Device::Cpu);
-        let model = Transformer::new(vs.root(), &cfg(Positions::Sinusoidal)).unwrap();
-        let x = Tensor::randn([2, 10, 16], (Kind::Float, Device::Cpu));
+        let (model, x) = crate::torch_rng::seeded(1, || {
+            let model = Transformer::new(vs.root(), &cfg(Positions::Sinusoidal)).unwrap();
+            (
+                model,
+                Tensor::randn([2, 10, 16], (Kind::Float, Device::Cpu)),
+            )
+        });
         let y = x.copy();
         let _ = y.narrow(1, 6, 4).fill_(3.0);
         let a = tch::no_grad(|| model.forward_t(&x, false).unwrap());
@@ -544,7 +551,9 @@ mod tests {
                 .contains("attn_dropout = 1.5")
         );
         let vs = VarStore::new(Device::Cpu);
-        let model = Transformer::new(vs.root(), &cfg(Positions::Learned)).unwrap();
+        let model =
+            crate::torch_rng::drawing(|| Transformer::new(vs.root(), &cfg(Positions::Learned)))
+                .unwrap();
         let too_long = Tensor::zeros([1, 41, 16], (Kind::Float, Device::Cpu));
         let err = model.forward_t(&too_long, false).unwrap_err().to_string();
         assert!(err.contains("41") && err.contains("40"), "{err}");

@@ -309,8 +309,7 @@ pub fn train(
 /// when libtorch sees one.
 fn new_model(spec: &AdSpec, cfg: &AdConfig) -> Result<(nn::VarStore, AdModel, Adam), AdError> {
     let vs = nn::VarStore::new(Device::cuda_if_available());
-    tch::manual_seed(cfg.seed as i64);
-    let model = AdModel::new(&vs.root(), spec, cfg)?;
+    let model = crate::torch_rng::seeded(cfg.seed, || AdModel::new(&vs.root(), spec, cfg))?;
     let opt = Adam::new(
         &vs,
         AdamConfig {

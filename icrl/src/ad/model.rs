@@ -20,6 +20,10 @@ pub struct AdModel {
 
 impl AdModel {
     pub fn new(p: &nn::Path, spec: &AdSpec, cfg: &AdConfig) -> Result<Self, AdError> {
+        crate::torch_rng::drawing(|| Self::build(p, spec, cfg))
+    }
+
+    fn build(p: &nn::Path, spec: &AdSpec, cfg: &AdConfig) -> Result<Self, AdError> {
         let d = cfg.model.d_model;
         let embed = nn::seq()
             .add(nn::linear(

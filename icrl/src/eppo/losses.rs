@@ -82,6 +82,18 @@ pub(super) fn losses(
     entropy_coef: f64,
     cfg: &EppoConfig,
 ) -> Result<(Tensor, Tensor, Tensor, Tensor, LossDiagnostics), EppoError> {
+    // Dropout and the reparameterisation noise draw from libtorch's generator.
+    crate::torch_rng::drawing(|| batch_losses(net, target, batch, lambda, entropy_coef, cfg))
+}
+
+fn batch_losses(
+    net: &EppoNet,
+    target: &EppoNet,
+    batch: &Batch,
+    lambda: f64,
+    entropy_coef: f64,
+    cfg: &EppoConfig,
+) -> Result<(Tensor, Tensor, Tensor, Tensor, LossDiagnostics), EppoError> {
     let h = net.encode(&batch.tokens, true)?; // (B, L, D)
     let c = cfg.n_critics;
     let (y, yc) = td_targets(net, target, batch, cfg)?; // (B, L) each

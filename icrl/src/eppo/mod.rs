@@ -207,11 +207,14 @@ impl Learner {
         memory_estimate(&cfg, &spec)
             .check()
             .map_err(EppoError::Config)?;
-        tch::manual_seed(cfg.seed as i64);
         let vs = nn::VarStore::new(device);
-        let net = EppoNet::new(vs.root(), &cfg, &spec)?;
         let mut target_vs = nn::VarStore::new(device);
-        let target = EppoNet::new(target_vs.root(), &cfg, &spec)?;
+        let (net, target) = crate::torch_rng::seeded(cfg.seed, || {
+            Ok::<_, EppoError>((
+                EppoNet::new(vs.root(), &cfg, &spec)?,
+                EppoNet::new(target_vs.root(), &cfg, &spec)?,
+            ))
+        })?;
         target_vs.copy(&vs)?;
         target_vs.freeze();
         let opt = Adam::new(
@@ -254,10 +257,14 @@ impl Learner {
     /// One update on a batch sampled from the replay: Lv, Lc, Lp, then lambda
     /// (Eq. 7) and the Polyak targets.
     pub fn update(&mut self) -> Result<UpdateStats, EppoError> {
-        let mut clock = Instant::now();
         // libtorch's generator (dropout, reparameterisation noise) is reseeded per
         // update, so a resumed run draws what the uninterrupted one would have.
-        tch::manual_seed((self.cfg.seed ^ 0x5EED_0000).wrapping_add(self.updates) as i64);
+        let seed = (self.cfg.seed ^ 0x5EED_0000).wrapping_add(self.updates);
+        crate::torch_rng::seeded(seed, || self.update_seeded())
+    }
+
+    fn update_seeded(&mut self) -> Result<UpdateStats, EppoError> {
+        let mut clock = Instant::now();
         let sampled = self.replay.sample(self.cfg.batch_size, &mut self.rng);
         let relabelled = relabel_some(
             &sampled,

@@ -190,6 +190,10 @@ const LOG_STD_MAX: f64 = 2.0;
 impl EppoNet {
     /// Builds every part under `p` (names are the checkpoint format).
     pub fn new(p: nn::Path, cfg: &EppoConfig, spec: &NetSpec) -> Result<Self, EppoError> {
+        crate::torch_rng::drawing(|| Self::build(p, cfg, spec))
+    }
+
+    fn build(p: nn::Path, cfg: &EppoConfig, spec: &NetSpec) -> Result<Self, EppoError> {
         let d = cfg.model.d_model;
         let a = spec.act_flat() as i64;
         let (actor_out, critic_in, critic_out) = match spec.n_actions {

@@ -1130,15 +1130,16 @@ fn penalty_probe(form: PenaltyForm) -> (Learner, Batch) {
 
 /// Lp on `batch` with multiplier `lambda`, the same libtorch draws each call.
 fn policy_loss_at(learner: &Learner, batch: &Batch, lambda: f64) -> f64 {
-    tch::manual_seed(0);
-    let (_, _, lp, ..) = losses(
-        &learner.net,
-        &learner.target,
-        batch,
-        lambda,
-        learner.cfg.entropy_coef,
-        &learner.cfg,
-    )
+    let (_, _, lp, ..) = crate::torch_rng::seeded(0, || {
+        losses(
+            &learner.net,
+            &learner.target,
+            batch,
+            lambda,
+            learner.cfg.entropy_coef,
+            &learner.cfg,
+        )
+    })
     .unwrap();
     lp.double_value(&[])
 }
@@ -1389,7 +1390,6 @@ fn same_seed_same_run_on_cpu() {
         out.push(w);
         out
     };
-    tch::set_num_threads(1);
     assert_eq!(run(5), run(5));
     assert_ne!(run(5), run(6));
 }
@@ -1542,10 +1542,9 @@ fn continuous_exploration_noise_widens_the_sampled_actions_within_the_box() {
 
 #[test]
 fn tanh_gaussian_log_prob_matches_the_sampler() {
-    tch::manual_seed(3);
-    let mean = Tensor::randn([4, 5, 2], (Kind::Float, Device::Cpu));
-    let log_std = Tensor::randn([4, 5, 2], (Kind::Float, Device::Cpu)) * 0.5 - 0.5;
-    let noise = Tensor::randn([4, 5, 2], (Kind::Float, Device::Cpu));
+    let randn = || Tensor::randn([4, 5, 2], (Kind::Float, Device::Cpu));
+    let (mean, log_std, noise) = crate::torch_rng::seeded(3, || (randn(), randn(), randn()));
+    let log_std = log_std * 0.5 - 0.5;
     let (a, want) = tanh_gaussian_sample(&mean, &log_std, &noise);
     let got = tanh_gaussian_log_prob(&mean, &log_std, &a);
     let err = (got - want).abs().max().double_value(&[]);
@@ -1607,11 +1606,14 @@ fn filtered_bc_raises_the_log_prob_of_kept_replayed_actions() {
         let bc_term = || {
             let mut with = cfg.clone();
             with.bc_coef = 1.0;
-            tch::manual_seed(0);
-            let (_, _, a, ..) =
-                losses(&net, &target, &batch, 0.0, with.entropy_coef, &with).unwrap();
-            tch::manual_seed(0);
-            let (_, _, b, ..) = losses(&net, &target, &batch, 0.0, cfg.entropy_coef, &cfg).unwrap();
+            let (_, _, a, ..) = crate::torch_rng::seeded(0, || {
+                losses(&net, &target, &batch, 0.0, with.entropy_coef, &with)
+            })
+            .unwrap();
+            let (_, _, b, ..) = crate::torch_rng::seeded(0, || {
+                losses(&net, &target, &batch, 0.0, cfg.entropy_coef, &cfg)
+            })
+            .unwrap();
             a - b
         };
         let first = bc_term().double_value(&[]);

@@ -300,32 +300,36 @@ pub fn evaluate(
         recording: None,
     };
 
-    if let Some(seed) = cfg.torch_seed {
-        tch::manual_seed(seed as i64);
-    }
     // Parameters frozen: nothing below builds a graph or touches an optimizer.
-    tch::no_grad(|| -> Result<(), EvalError> {
-        for first in (0..total).step_by(b) {
-            // Trajectory j = condition * tasks + task; the last batch is padded
-            // with copies of its first trajectory, whose results are dropped.
-            let rows: Vec<usize> = (0..b)
-                .map(|i| if first + i < total { first + i } else { first })
-                .collect();
-            let live = (total - first).min(b);
-            run_batch(
-                agent,
-                &mut venv,
-                &tasks,
-                cfg,
-                &rows,
-                live,
-                (obs_dim, &act_space, t_max),
-                &mut result,
-                on_episodes,
-            )?;
-        }
-        Ok(())
-    })?;
+    let rollouts = || {
+        tch::no_grad(|| -> Result<(), EvalError> {
+            for first in (0..total).step_by(b) {
+                // Trajectory j = condition * tasks + task; the last batch is padded
+                // with copies of its first trajectory, whose results are dropped.
+                let rows: Vec<usize> = (0..b)
+                    .map(|i| if first + i < total { first + i } else { first })
+                    .collect();
+                let live = (total - first).min(b);
+                run_batch(
+                    agent,
+                    &mut venv,
+                    &tasks,
+                    cfg,
+                    &rows,
+                    live,
+                    (obs_dim, &act_space, t_max),
+                    &mut result,
+                    on_episodes,
+                )?;
+            }
+            Ok(())
+        })
+    };
+    // Sampled actions draw from libtorch's generator (AD's policy).
+    match cfg.torch_seed {
+        Some(seed) => crate::torch_rng::seeded(seed, rollouts),
+        None => crate::torch_rng::drawing(rollouts),
+    }?;
     Ok(result)
 }
 
@@ -716,7 +720,9 @@ mod tests {
     impl TinyTorchAgent {
         fn new() -> Self {
             let vs = nn::VarStore::new(tch::Device::Cpu);
-            let layer = nn::linear(vs.root() / "policy", 2, 5, Default::default());
+            let layer = crate::torch_rng::drawing(|| {
+                nn::linear(vs.root() / "policy", 2, 5, Default::default())
+            });
             // Fixed weights, independent of libtorch's global generator (which
             // tests running in parallel share).
             tch::no_grad(|| {

@@ -36,7 +36,7 @@ use crate::data::histories::History;
 
 pub use config::PpoLagConfig;
 pub use losses::{Lagrange, RunningNorm, clipped_surrogate, combined_advantage, gae};
-use net::{ActorCritic, INIT_LOCK};
+use net::ActorCritic;
 
 /// Everything PPO-Lagrangian can fail with.
 #[derive(Debug, Error)]
@@ -156,12 +156,9 @@ pub fn train(
     // -- networks, optimiser, generators
     let mut rng = ChaCha8Rng::seed_from_u64(seed);
     let vs = nn::VarStore::new(Device::Cpu);
-    let net = {
-        // A poisoned lock only means another run panicked mid-initialisation.
-        let _guard = INIT_LOCK.lock().unwrap_or_else(|e| e.into_inner());
-        tch::manual_seed(seed as i64);
+    let net = crate::torch_rng::seeded(seed, || {
         ActorCritic::new(&vs.root(), obs_dim as i64, &space, cfg)
-    };
+    });
     let mut opt = nn::Adam::default().build(&vs, cfg.learning_rate)?;
     let mut lagrange = Lagrange::new(cfg.lagrange_init, cfg.lagrange_lr, cfg.lagrange_max);
     let mut norm = RunningNorm::new(obs_dim);

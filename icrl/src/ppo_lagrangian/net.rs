@@ -1,15 +1,10 @@
 //! The actor-critic: MLPs with orthogonal initialisation, a categorical or
 //! diagonal-Gaussian policy, and reward and cost value heads.
 
-use std::sync::Mutex;
-
 use safety_envs::Space;
 use tch::{Kind, Tensor, nn, nn::Module};
 
 use super::config::PpoLagConfig;
-
-/// libtorch's generator is process-wide: seed and initialise under one lock.
-pub(super) static INIT_LOCK: Mutex<()> = Mutex::new(());
 
 /// A two-hidden-layer tanh MLP with CleanRL's orthogonal initialisation.
 fn mlp(p: nn::Path, input: i64, hidden: i64, output: i64, out_gain: f64) -> nn::Sequential {
@@ -45,6 +40,10 @@ pub(super) struct ActorCritic {
 
 impl ActorCritic {
     pub(super) fn new(p: &nn::Path, obs_dim: i64, space: &Space, cfg: &PpoLagConfig) -> Self {
+        crate::torch_rng::drawing(|| Self::build(p, obs_dim, space, cfg))
+    }
+
+    fn build(p: &nn::Path, obs_dim: i64, space: &Space, cfg: &PpoLagConfig) -> Self {
         let out = space.flat_dim() as i64;
         let log_std = match space {
             Space::Discrete { .. } => None,
