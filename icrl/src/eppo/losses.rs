@@ -83,53 +83,44 @@ pub(super) fn losses(
     cfg: &EppoConfig,
 ) -> Result<(Tensor, Tensor, Tensor, Tensor, LossDiagnostics), EppoError> {
     // Dropout and the reparameterisation noise draw from libtorch's generator.
-    crate::torch_rng::drawing(|| batch_losses(net, target, batch, lambda, entropy_coef, cfg))
-}
-
-fn batch_losses(
-    net: &EppoNet,
-    target: &EppoNet,
-    batch: &Batch,
-    lambda: f64,
-    entropy_coef: f64,
-    cfg: &EppoConfig,
-) -> Result<(Tensor, Tensor, Tensor, Tensor, LossDiagnostics), EppoError> {
-    let h = net.encode(&batch.tokens, true)?; // (B, L, D)
-    let c = cfg.n_critics;
-    let (y, yc) = td_targets(net, target, batch, cfg)?; // (B, L) each
-    let td_mask = batch.td_valid.unsqueeze(-1); // (B, L, 1)
-    let actor = match net.spec.n_actions {
-        Some(_) => discrete_actor(net, &h, batch, lambda, entropy_coef, cfg),
-        None => continuous_actor(net, &h, batch, lambda, entropy_coef, cfg),
-    };
-    let diagnostics = LossDiagnostics {
-        q_mean: masked_mean(
-            &actor.q_taken.detach().mean_dim(-1, false, Kind::Float),
-            &batch.td_valid,
-        ),
-        target_mean: masked_mean(&y, &batch.td_valid),
-        log_std_mean: actor.log_std_mean,
-        goal_recall: net
-            .goal_recall
-            .as_ref()
-            .map(|head| goal_recall_loss(head, &h, batch)),
-    };
-    let (q_taken, qc_taken) = (actor.q_taken, actor.qc_taken);
-    let value_loss = masked_mean(
-        &(q_taken - y.unsqueeze(-1)).square(),
-        &td_mask.expand([-1, -1, c], false),
-    );
-    let cost_value_loss = masked_mean(
-        &(qc_taken - yc.unsqueeze(-1)).square(),
-        &td_mask.expand([-1, -1, c], false),
-    );
-    Ok((
-        value_loss,
-        cost_value_loss,
-        actor.policy_loss,
-        actor.entropy,
-        diagnostics,
-    ))
+    crate::torch_rng::drawing(|| {
+        let h = net.encode(&batch.tokens, true)?; // (B, L, D)
+        let c = cfg.n_critics;
+        let (y, yc) = td_targets(net, target, batch, cfg)?; // (B, L) each
+        let td_mask = batch.td_valid.unsqueeze(-1); // (B, L, 1)
+        let actor = match net.spec.n_actions {
+            Some(_) => discrete_actor(net, &h, batch, lambda, entropy_coef, cfg),
+            None => continuous_actor(net, &h, batch, lambda, entropy_coef, cfg),
+        };
+        let diagnostics = LossDiagnostics {
+            q_mean: masked_mean(
+                &actor.q_taken.detach().mean_dim(-1, false, Kind::Float),
+                &batch.td_valid,
+            ),
+            target_mean: masked_mean(&y, &batch.td_valid),
+            log_std_mean: actor.log_std_mean,
+            goal_recall: net
+                .goal_recall
+                .as_ref()
+                .map(|head| goal_recall_loss(head, &h, batch)),
+        };
+        let (q_taken, qc_taken) = (actor.q_taken, actor.qc_taken);
+        let value_loss = masked_mean(
+            &(q_taken - y.unsqueeze(-1)).square(),
+            &td_mask.expand([-1, -1, c], false),
+        );
+        let cost_value_loss = masked_mean(
+            &(qc_taken - yc.unsqueeze(-1)).square(),
+            &td_mask.expand([-1, -1, c], false),
+        );
+        Ok((
+            value_loss,
+            cost_value_loss,
+            actor.policy_loss,
+            actor.entropy,
+            diagnostics,
+        ))
+    })
 }
 
 /// Squared distance between the goal read off h_t and the trajectory's goal,
