@@ -208,13 +208,10 @@ impl Learner {
             .check()
             .map_err(EppoError::Config)?;
         let vs = nn::VarStore::new(device);
+        let net = crate::torch_rng::seeded(cfg.seed, || EppoNet::new(vs.root(), &cfg, &spec))?;
+        // The target's own initial draws are overwritten by the copy.
         let mut target_vs = nn::VarStore::new(device);
-        let (net, target) = crate::torch_rng::seeded(cfg.seed, || {
-            Ok::<_, EppoError>((
-                EppoNet::new(vs.root(), &cfg, &spec)?,
-                EppoNet::new(target_vs.root(), &cfg, &spec)?,
-            ))
-        })?;
+        let target = EppoNet::new(target_vs.root(), &cfg, &spec)?;
         target_vs.copy(&vs)?;
         target_vs.freeze();
         let opt = Adam::new(
