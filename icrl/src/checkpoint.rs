@@ -1247,31 +1247,38 @@ mod tests {
     #[test]
     fn racing_creators_never_share_a_run_folder() {
         let root = std::env::temp_dir().join(format!("icrl-ckpt-race-{}", std::process::id()));
-        let _ = fs::remove_dir_all(&root);
-        // Eight threads, released together, all asking for the same name.
-        let barrier = std::sync::Arc::new(std::sync::Barrier::new(8));
-        let handles: Vec<_> = (0..8)
-            .map(|_| {
-                let (root, barrier) = (root.clone(), barrier.clone());
-                std::thread::spawn(move || {
-                    barrier.wait();
-                    RunDir::create_named(&root, "darkroom__eppo__0__20260101T000000")
-                        .unwrap()
-                        .path
+        // Rounds, because a race shows only sometimes: each starts without
+        // the --out folder, so the creators also race to make it.
+        for _ in 0..20 {
+            let _ = fs::remove_dir_all(&root);
+            // Eight threads, released together, all asking for the same name.
+            let barrier = std::sync::Arc::new(std::sync::Barrier::new(8));
+            let handles: Vec<_> = (0..8)
+                .map(|_| {
+                    let (root, barrier) = (root.clone(), barrier.clone());
+                    std::thread::spawn(move || {
+                        barrier.wait();
+                        RunDir::create_named(&root, "darkroom__eppo__0__20260101T000000")
+                            .map(|run| run.path)
+                            .map_err(|e| e.to_string())
+                    })
                 })
-            })
-            .collect();
-        let mut paths: Vec<PathBuf> = handles.into_iter().map(|h| h.join().unwrap()).collect();
-        paths.sort();
-        paths.dedup();
-        assert_eq!(
-            paths.len(),
-            8,
-            "every creator got its own folder: {paths:?}"
-        );
-        assert!(paths.contains(&root.join("darkroom__eppo__0__20260101T000000")));
-        assert!(paths.contains(&root.join("darkroom__eppo__0__20260101T000000_8")));
-        assert!(paths.iter().all(|p| p.join("checkpoints").is_dir()));
+                .collect();
+            let mut paths: Vec<PathBuf> = handles
+                .into_iter()
+                .map(|h| h.join().unwrap().unwrap())
+                .collect();
+            paths.sort();
+            paths.dedup();
+            assert_eq!(
+                paths.len(),
+                8,
+                "every creator got its own folder: {paths:?}"
+            );
+            assert!(paths.contains(&root.join("darkroom__eppo__0__20260101T000000")));
+            assert!(paths.contains(&root.join("darkroom__eppo__0__20260101T000000_8")));
+            assert!(paths.iter().all(|p| p.join("checkpoints").is_dir()));
+        }
         fs::remove_dir_all(&root).unwrap();
     }
 

@@ -193,6 +193,9 @@ fn is_loop(e: &std::io::Error) -> bool {
 /// already; a file, device, dangling link or symbolic link loop where the
 /// folder should be is named, not reported as the OS's `File exists`.
 pub fn create_folder(dir: &Path) -> Result<(), OutputError> {
+    // Create first and diagnose after: checking before creating races with
+    // another process (or thread) creating the same folder in between.
+    let created = fs::create_dir_all(dir);
     if dir.is_dir() {
         return Ok(());
     }
@@ -215,7 +218,7 @@ pub fn create_folder(dir: &Path) -> Result<(), OutputError> {
             )),
         };
     }
-    match fs::create_dir_all(dir) {
+    match created {
         Ok(()) => Ok(()),
         Err(e) if is_loop(&e) => err(format!(
             "cannot create it: a folder on its path is a symbolic link loop ({e}): choose another folder"
