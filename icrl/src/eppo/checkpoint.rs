@@ -12,7 +12,7 @@ use safety_envs::EnvName;
 
 use super::Learner;
 use super::config::{EppoConfig, EppoError};
-use super::multiplier::Multiplier;
+use super::multiplier::{ConstraintStart, Multiplier};
 use super::net::NetSpec;
 use crate::checkpoint::{CheckpointError, RunDir, read_manifest};
 use crate::task_seeds::PretrainTasks;
@@ -29,6 +29,7 @@ impl Learner {
         let state = TrainState {
             lambda: self.multiplier.lambda,
             multiplier: Some(self.multiplier),
+            constraint_start: Some(self.constraint_start.clone()),
             entropy_coef: Some(self.entropy_coef),
             updates: self.updates,
             env_steps: self.env_steps,
@@ -146,6 +147,9 @@ impl Learner {
         if learner.cfg.target_entropy.is_some() {
             learner.entropy_coef = state.entropy_coef.unwrap_or(learner.cfg.entropy_coef);
         }
+        // Older checkpoints have no measured start: a fork that asks for one
+        // measures it afresh.
+        learner.constraint_start = state.constraint_start.unwrap_or_default();
         learner.updates = state.updates;
         learner.env_steps = state.env_steps;
         // Checkpoints from before tasks were recorded restart the count.
@@ -182,6 +186,9 @@ pub(super) struct TrainState {
     /// The multiplier's whole state (absent in older checkpoints).
     #[serde(default)]
     pub(super) multiplier: Option<Multiplier>,
+    /// When the constraint came on (absent in older checkpoints).
+    #[serde(default)]
+    pub(super) constraint_start: Option<ConstraintStart>,
     /// The entropy weight (absent in checkpoints from before it was tuned).
     #[serde(default)]
     pub(super) entropy_coef: Option<f64>,

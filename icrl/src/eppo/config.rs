@@ -98,6 +98,15 @@ pub struct EppoConfig {
     /// stops search before it is learned; results/eppo_ladder).
     #[serde(default)]
     pub lambda_warmup_updates: u64,
+    /// Past the warm-up, the constraint also waits for the training revisit
+    /// rate, averaged over the last `constraint_revisit_rounds` rounds, to
+    /// reach this (`multiplier::ConstraintStart`): a warm-up that ends on a
+    /// measured skill, not a count. Absent: the count alone.
+    #[serde(default)]
+    pub constraint_after_revisit: Option<f64>,
+    /// Rounds in `constraint_after_revisit`'s average.
+    #[serde(default = "default_constraint_revisit_rounds")]
+    pub constraint_revisit_rounds: usize,
     /// Proportional gain of the PID Lagrangian (Stooke et al., 2020) on the
     /// smoothed violation (`multiplier.rs`); 0 with `lambda_kd` 0: Eq. (7).
     #[serde(default)]
@@ -420,6 +429,10 @@ fn default_saute_unsafe_reward() -> f64 {
 }
 
 /// Absent from a config: one SafeDarkRoom cell.
+fn default_constraint_revisit_rounds() -> usize {
+    20
+}
+
 fn default_novelty_cell() -> f64 {
     1.0
 }
@@ -633,6 +646,20 @@ impl EppoConfig {
                     .to_string(),
             );
         }
+        if let Some(t) = self.constraint_after_revisit
+            && !(t > 0.0 && t <= 1.0)
+        {
+            return bad(format!(
+                "constraint_after_revisit = {t} is a revisit rate: set it in (0, 1], or drop it \
+                 to start the constraint after lambda_warmup_updates alone"
+            ));
+        }
+        if self.constraint_revisit_rounds == 0 {
+            return bad(
+                "constraint_revisit_rounds = 0 averages nothing: set it to 1 or more (20 by default)"
+                    .to_string(),
+            );
+        }
         if let Some(r) = self.replay_ratio
             && !(r.is_finite() && r > 0.0)
         {
@@ -740,10 +767,8 @@ impl EppoConfig {
 
     /// What the critics' rewards carry at update `updates` beyond the
     /// collected reward. The over-budget reward (Saute's, the excess price)
-    /// starts with the constraint, after `lambda_warmup_updates`, as the
-    /// multiplier would.
-    pub(super) fn shaping(&self, updates: u64) -> Shaping {
-        let constrained = updates >= self.lambda_warmup_updates;
+    /// starts with the constraint (`constrained`), as the multiplier does.
+    pub(super) fn shaping(&self, updates: u64, constrained: bool) -> Shaping {
         let cost_price = self.over_budget_cost_price as f32;
         Shaping {
             novelty: self.novelty_weight(updates) as f32,

@@ -87,7 +87,11 @@
 //! reward (`penalty = "excess"`: Eq. (5)'s exact penalty with lambda fixed),
 //! less `over_budget_cost_price` per unit of cost, so the price of
 //! overspending does not depend on where an integrator settles on a given
-//! training seed.
+//! training seed. The constraint (multiplier and price alike) waits
+//! `lambda_warmup_updates`, and with `constraint_after_revisit` also for the
+//! training revisit rate to reach a level (`multiplier::ConstraintStart`):
+//! priced before the agent comes back to the goals it finds, it learns to
+//! search and never to come back (dx1).
 //!
 //! Metrics (`metrics.jsonl`, one record per collection round, against
 //! `env_steps`): `episodic_return`, `episodic_cost` (means over the episodes
@@ -95,7 +99,8 @@
 //! `first_episode_cost`, `last_episode_cost` (per trajectory, averaged: the
 //! in-context signal), `discovery_rate` and `revisit_rate` (P(goal at episode
 //! k > 1 | not found / found earlier in the trajectory)), `found_goal`
-//! (fraction of trajectories that found it), `lambda`, `entropy_coef`,
+//! (fraction of trajectories that found it), `lambda`, `constrained`
+//! (whether the constraint acted in the round), `entropy_coef`,
 //! `losses/value_loss`, `losses/cost_value_loss`, `losses/policy_loss`, `losses/entropy`, `losses/grad_norm`,
 //! `losses/goal_recall` (NaN without the head), `charts/epsilon`,
 //! `charts/updates_per_s`, `charts/env_steps_per_s`, `charts/cpu_learner` and
@@ -136,7 +141,7 @@ pub use config::{
     memory_estimate, parse_device,
 };
 pub use losses::{UpdateStats, lambda_update};
-pub use multiplier::{Gains, Multiplier};
+pub use multiplier::{ConstraintStart, Gains, Multiplier};
 pub use net::{EppoNet, NetSpec};
 pub use relabel::{pick_goal, relabel};
 pub use replay::{Replay, Trajectory};
@@ -163,6 +168,8 @@ pub struct Learner {
     pub opt: Adam,
     /// The cost multiplier lambda and its PID state (`multiplier.rs`).
     pub multiplier: Multiplier,
+    /// When the constraint comes on (`constraint_after_revisit`).
+    pub constraint_start: ConstraintStart,
     /// The entropy bonus's weight: `entropy_coef`, tuned toward
     /// `target_entropy` where one is set.
     pub entropy_coef: f64,
@@ -228,6 +235,7 @@ impl Learner {
             rng: ChaCha8Rng::seed_from_u64(cfg.seed),
             replay: Replay::new(cfg.replay_capacity),
             multiplier: Multiplier::new(cfg.lambda_init),
+            constraint_start: ConstraintStart::default(),
             entropy_coef: cfg.entropy_coef,
             updates: 0,
             env_steps: 0,
@@ -279,7 +287,7 @@ impl Learner {
             &trajs,
             &self.cfg,
             &self.spec,
-            self.cfg.shaping(self.updates),
+            self.cfg.shaping(self.updates, self.constrained()),
             &mut self.rng,
             self.device,
         );
@@ -319,7 +327,7 @@ impl Learner {
         self.times.backward += lap(&mut clock);
         let grad_norm = self.opt.try_step().map_err(non_finite)?;
         self.times.optimizer += lap(&mut clock);
-        if self.updates >= self.cfg.lambda_warmup_updates {
+        if self.constrained() {
             self.multiplier
                 .update(&violations, &self.cfg.multiplier_gains());
         }
@@ -351,6 +359,30 @@ impl Learner {
         };
         self.times.targets += lap(&mut clock);
         Ok(stats)
+    }
+
+    /// Whether the constraint acts now: the multiplier moves and the
+    /// over-budget price is charged.
+    pub fn constrained(&self) -> bool {
+        self.constraint_start.on(
+            self.updates,
+            self.cfg.lambda_warmup_updates,
+            self.cfg.constraint_after_revisit,
+        )
+    }
+
+    /// Takes a collected round's measures into what the learner decides
+    /// from them (when the constraint starts).
+    pub fn observe_round(&mut self, round: &RoundStats) {
+        if let Some(threshold) = self.cfg.constraint_after_revisit {
+            self.constraint_start.observe(
+                round.revisit_rate,
+                self.updates,
+                self.cfg.lambda_warmup_updates,
+                threshold,
+                self.cfg.constraint_revisit_rounds,
+            );
+        }
     }
 
     /// The replay ratio: updates owed once a round has brought `env_steps`
@@ -461,6 +493,7 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
     } else {
         while learner.updates < cfg.total_updates {
             let round = learner.collect(&mut venv)?;
+            learner.observe_round(&round);
             let stats = learn(&mut learner, &mut session)?;
             session.log_round(&mut learner, &round, &stats, None)?;
             if crate::stop::requested() {
@@ -697,6 +730,7 @@ fn round_record(
         "revisit_rate": round.revisit_rate,
         "found_goal": round.found,
         "lambda": learner.multiplier.lambda,
+        "constrained": learner.constrained(),
         "entropy_coef": learner.entropy_coef,
         "losses/value_loss": avg(|s| s.value_loss),
         "losses/cost_value_loss": avg(|s| s.cost_value_loss),

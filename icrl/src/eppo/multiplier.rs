@@ -68,3 +68,56 @@ impl Multiplier {
             (self.integral + gains.kp * self.smoothed + gains.kd * rise).clamp(0.0, gains.max);
     }
 }
+
+/// When the constraint (the multiplier's updates, the over-budget price)
+/// comes on: after `lambda_warmup_updates`, and, with
+/// `constraint_after_revisit`, once the training revisit rate, averaged over
+/// the last `constraint_revisit_rounds` rounds, reaches it. A count alone
+/// prices search on some seeds before the agent has learned to come back to
+/// a found goal, and then it never does (issue 18, dx1: revisit 0.47 when
+/// the price came at 3000); a condition waits for the skill itself. Once on,
+/// it stays on. Checkpointed, so a resumed run starts it where the
+/// uninterrupted one would.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+pub struct ConstraintStart {
+    /// The update at which it came on (a measured start only).
+    pub since: Option<u64>,
+    /// The revisit rates of the latest rounds, oldest first.
+    pub recent_revisits: Vec<f64>,
+}
+
+impl ConstraintStart {
+    /// Whether the constraint acts at update `updates`.
+    pub fn on(&self, updates: u64, warmup: u64, after_revisit: Option<f64>) -> bool {
+        match after_revisit {
+            None => updates >= warmup,
+            Some(_) => self.since.is_some(),
+        }
+    }
+
+    /// Takes one collection round's revisit rate (NaN when no trajectory
+    /// found the goal before its last episode: not counted) and starts the
+    /// constraint once the window's mean reaches `threshold`.
+    pub fn observe(
+        &mut self,
+        revisit_rate: f64,
+        updates: u64,
+        warmup: u64,
+        threshold: f64,
+        rounds: usize,
+    ) {
+        if self.since.is_some() {
+            return;
+        }
+        if revisit_rate.is_finite() {
+            self.recent_revisits.push(revisit_rate);
+            let excess = self.recent_revisits.len().saturating_sub(rounds);
+            self.recent_revisits.drain(..excess);
+        }
+        let full = self.recent_revisits.len() == rounds;
+        let mean = self.recent_revisits.iter().sum::<f64>() / rounds as f64;
+        if updates >= warmup && full && mean >= threshold {
+            self.since = Some(updates);
+        }
+    }
+}

@@ -156,6 +156,7 @@ fn learner_side(
         for t in round.trajs {
             learner.replay.push(t);
         }
+        learner.observe_round(&round.stats);
         let stats = learn(learner, session)?;
         // Published before logging, so the actor waits as little as possible.
         if weights.send(snapshot(vars)).is_err() {

@@ -569,12 +569,102 @@ fn priced_from_update_100(form: PenaltyForm) -> EppoConfig {
     cfg.lambda_init = 0.0;
     cfg.lambda_warmup_updates = 100;
     cfg.over_budget_cost_price = 2.0;
+    let count = ConstraintStart::default();
+    assert!(!count.on(99, cfg.lambda_warmup_updates, None));
+    assert!(count.on(100, cfg.lambda_warmup_updates, None));
     assert_eq!(
-        cfg.shaping(99).over_budget,
+        cfg.shaping(99, false).over_budget,
         None,
         "not before the constraint"
     );
     cfg
+}
+
+#[test]
+fn a_measured_constraint_start_waits_for_the_warmup_and_the_revisit_rate() {
+    let (warmup, threshold, rounds) = (100, 0.8, 3);
+    let mut start = ConstraintStart::default();
+    let observe = |start: &mut ConstraintStart, rate: f64, updates: u64| {
+        start.observe(rate, updates, warmup, threshold, rounds);
+        start.on(updates, warmup, Some(threshold))
+    };
+    // Revisiting, but inside the warm-up: off, though the count alone would not say so.
+    for updates in [50, 60, 70] {
+        assert!(!observe(&mut start, 0.9, updates));
+    }
+    assert!(start.on(100, warmup, None));
+    // A round with nothing to revisit (NaN) does not count, either way.
+    let mut low = ConstraintStart::default();
+    for rate in [0.9, 0.9, 0.5, f64::NAN, 0.9] {
+        assert!(!observe(&mut low, rate, 200), "{rate}: mean under 0.8");
+    }
+    assert_eq!(low.recent_revisits, vec![0.9, 0.5, 0.9]);
+    assert!(
+        !observe(&mut low, 0.9, 205),
+        "0.5, 0.9, 0.9: mean under 0.8"
+    );
+    assert!(observe(&mut low, 0.9, 210), "0.9, 0.9, 0.9");
+    assert_eq!(low.since, Some(210));
+    // Past the warm-up the full window starts it, and it stays on.
+    assert!(observe(&mut start, 0.9, 100));
+    assert_eq!(start.since, Some(100));
+    assert!(observe(&mut start, 0.0, 150), "once on, it stays on");
+    assert_eq!(start.since, Some(100));
+}
+
+#[test]
+fn the_multiplier_waits_for_the_measured_start_and_the_checkpoint_keeps_it() {
+    let mut cfg = tiny();
+    cfg.lambda_init = 0.5;
+    cfg.lambda_lr = 0.1;
+    cfg.lambda_max = 10.0;
+    cfg.lambda_warmup_updates = 0;
+    cfg.constraint_after_revisit = Some(0.5);
+    cfg.constraint_revisit_rounds = 1;
+    cfg.validate().unwrap();
+    let (_, mut venv) = tiny_learner(0);
+    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+    learner.collect(&mut venv).unwrap();
+    learner.observe_round(&RoundStats {
+        revisit_rate: 0.4,
+        ..Default::default()
+    });
+    learner.update().unwrap();
+    assert!(!learner.constrained());
+    assert_eq!(learner.multiplier.lambda, 0.5, "held before the start");
+    learner.observe_round(&RoundStats {
+        revisit_rate: 0.6,
+        ..Default::default()
+    });
+    assert!(learner.constrained());
+    assert_eq!(learner.constraint_start.since, Some(1));
+    learner.update().unwrap();
+    assert_ne!(learner.multiplier.lambda, 0.5, "moves once on");
+    let out = std::env::temp_dir().join(format!("icrl-eppo-start-{}", std::process::id()));
+    let run = crate::checkpoint::RunDir::create(&out, "darkroom", "eppo", cfg.seed).unwrap();
+    let saved = learner.save_checkpoint(&run).unwrap();
+    let resumed = Learner::resume(cfg, EnvName::DarkRoom, &saved).unwrap();
+    assert_eq!(resumed.constraint_start, learner.constraint_start);
+    assert!(resumed.constrained());
+    std::fs::remove_dir_all(&out).unwrap();
+    for (key, value, says) in [
+        (
+            "constraint_after_revisit",
+            "1.5",
+            "constraint_after_revisit = 1.5",
+        ),
+        (
+            "constraint_revisit_rounds",
+            "0",
+            "constraint_revisit_rounds = 0",
+        ),
+    ] {
+        let mut table = crate::presets::preset_table("eppo", "darkroom", "quick").unwrap();
+        crate::presets::apply_overrides(&mut table, &[format!("{key}={value}")]).unwrap();
+        let cfg: EppoConfig = crate::presets::resolve("bad", table).unwrap();
+        let err = cfg.validate().unwrap_err().to_string();
+        assert!(err.contains(says), "{err}");
+    }
 }
 
 #[test]
@@ -584,7 +674,7 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
     cfg.saute_unsafe_reward = -0.25;
     cfg.validate().unwrap();
     assert_eq!(
-        cfg.shaping(100).over_budget,
+        cfg.shaping(100, true).over_budget,
         Some(OverBudget {
             replaced_reward: Some(-0.25),
             cost_price: 2.0,
@@ -629,7 +719,7 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
     );
     // Under another penalty form the same settings shape nothing.
     cfg.penalty = PenaltyForm::Hindsight;
-    assert_eq!(cfg.shaping(100).over_budget, None);
+    assert_eq!(cfg.shaping(100, true).over_budget, None);
     // The actor pays no lambda term: the price is in the reward.
     let qc = Tensor::from_slice(&[0.5f32, 2.0]).view([1, 2]);
     let ones = qc.ones_like();
@@ -669,7 +759,7 @@ fn excess_price_charges_each_unit_past_the_budget_and_keeps_the_goal() {
     let (t, spec) = overspent_walk();
     let mut cfg = priced_from_update_100(PenaltyForm::Excess);
     cfg.validate().unwrap();
-    let shaping = cfg.shaping(100);
+    let shaping = cfg.shaping(100, true);
     assert_eq!(
         shaping.over_budget,
         Some(OverBudget {
@@ -729,7 +819,7 @@ fn novelty_within_budget_withholds_the_bonus_only_past_the_budget() {
         }
         cfg.validate().unwrap();
         let mut rng = ChaCha8Rng::seed_from_u64(0);
-        let shaping = cfg.shaping(updates);
+        let shaping = cfg.shaping(updates, updates >= cfg.lambda_warmup_updates);
         let batch = make_batch(&[&t], &cfg, &spec, shaping, &mut rng, Device::Cpu);
         let scale = cfg.reward_scale as f32;
         to_vec(&batch.rewards)
@@ -782,7 +872,7 @@ fn novelty_by_remaining_share_scales_the_bonus_by_the_budget_left() {
             &[t],
             &cfg,
             &spec,
-            cfg.shaping(updates),
+            cfg.shaping(updates, updates >= cfg.lambda_warmup_updates),
             &mut rng,
             Device::Cpu,
         );
