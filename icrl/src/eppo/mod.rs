@@ -638,8 +638,13 @@ impl Session {
             round.first_return,
             round.last_return,
         );
+        let waiting = if learner.constrained() {
+            ""
+        } else {
+            " (constraint not on yet)"
+        };
         let line = format!(
-            "{}  lambda {:.3}  {ups:.2} upd/s",
+            "{}  lambda {:.3}{waiting}  {ups:.2} upd/s",
             self.recent.progress_line(self.random),
             learner.multiplier.lambda
         );
