@@ -302,6 +302,15 @@ pub struct EppoConfig {
     /// budgets came out the most costly (results/eppo_darkroom_budget, sa1).
     #[serde(default, alias = "saute_cost_price")]
     pub over_budget_cost_price: f64,
+    /// Later prices: each `{ after = N, price = P }` charges P per unit of
+    /// excess cost from N updates past the constraint's start on (N rising).
+    /// A price high enough to make the budget bind at the start stops search
+    /// on some training seeds, while the one that keeps it lets the budget
+    /// slip; seed 0 passed the budget's claims with 0.5 at the start, 1.0
+    /// from 5200 and 3.0 from 7200 updates on (results/eppo_darkroom_budget,
+    /// dw1 -> dw1p -> dw1q).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub over_budget_price_schedule: Vec<PriceChange>,
     /// What the multiplier integrates on each sampled trajectory (issue 18).
     #[serde(default)]
     pub violation_signal: ViolationSignal,
@@ -396,6 +405,16 @@ pub enum PenaltyForm {
     /// fixed. Saute's form, which also drops the goal once overspent, made a
     /// spent budget a reason to rush to the next episode (sa1, sa3).
     Excess,
+}
+
+/// One step of `over_budget_price_schedule`.
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct PriceChange {
+    /// Updates since the constraint came on.
+    pub after: u64,
+    /// The price per unit of excess cost from then on.
+    pub price: f64,
 }
 
 /// The per-trajectory violation g that the multiplier integrates.
@@ -631,6 +650,34 @@ impl EppoConfig {
                 self.over_budget_cost_price
             ));
         }
+        if !self.over_budget_price_schedule.is_empty() {
+            if !matches!(self.penalty, PenaltyForm::Saute | PenaltyForm::Excess) {
+                return bad(
+                    "over_budget_price_schedule changes the price that penalty = \"excess\" or \
+                     \"saute\" charges: set one of them, or drop the schedule"
+                        .to_string(),
+                );
+            }
+            let afters = self.over_budget_price_schedule.iter().map(|c| c.after);
+            if afters.clone().zip(afters.skip(1)).any(|(a, b)| a >= b) {
+                return bad(
+                    "over_budget_price_schedule's `after` values must rise from one change to \
+                     the next (updates since the constraint came on)"
+                        .to_string(),
+                );
+            }
+            if let Some(c) = self
+                .over_budget_price_schedule
+                .iter()
+                .find(|c| !(c.price.is_finite() && c.price >= 0.0))
+            {
+                return bad(format!(
+                    "over_budget_price_schedule: price = {} after {} updates must be a finite \
+                     number >= 0",
+                    c.price, c.after
+                ));
+            }
+        }
         if self.novelty_budget != NoveltyBudget::Always && self.novelty_bonus == 0.0 {
             return bad(
                 "novelty_budget gates the novelty bonus, which is off (novelty_bonus = 0): set \
@@ -765,15 +812,30 @@ impl EppoConfig {
         }
     }
 
+    /// The price per unit of excess cost `updates_constrained` updates after
+    /// the constraint came on (`over_budget_price_schedule`).
+    pub fn over_budget_price(&self, updates_constrained: u64) -> f64 {
+        self.over_budget_price_schedule
+            .iter()
+            .rfind(|c| c.after <= updates_constrained)
+            .map_or(self.over_budget_cost_price, |c| c.price)
+    }
+
     /// What the critics' rewards carry at update `updates` beyond the
     /// collected reward. The over-budget reward (Saute's, the excess price)
-    /// starts with the constraint (`constrained`), as the multiplier does.
-    pub(super) fn shaping(&self, updates: u64, constrained: bool) -> Shaping {
-        let cost_price = self.over_budget_cost_price as f32;
+    /// starts with the constraint (`constrained_since`: the update it came
+    /// on at), as the multiplier does.
+    pub(super) fn shaping(&self, updates: u64, constrained_since: Option<u64>) -> Shaping {
+        let Some(since) = constrained_since else {
+            return Shaping {
+                novelty: self.novelty_weight(updates) as f32,
+                over_budget: None,
+            };
+        };
+        let cost_price = self.over_budget_price(updates.saturating_sub(since)) as f32;
         Shaping {
             novelty: self.novelty_weight(updates) as f32,
             over_budget: match self.penalty {
-                _ if !constrained => None,
                 PenaltyForm::Saute => Some(OverBudget {
                     replaced_reward: Some(self.saute_unsafe_reward as f32),
                     cost_price,

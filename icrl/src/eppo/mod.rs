@@ -91,7 +91,9 @@
 //! `lambda_warmup_updates`, and with `constraint_after_revisit` also for the
 //! training revisit rate to reach a level (`multiplier::ConstraintStart`):
 //! priced before the agent comes back to the goals it finds, it learns to
-//! search and never to come back (dx1).
+//! search and never to come back (dx1). `over_budget_price_schedule` raises
+//! the price in steps after that start: the price that lets search survive
+//! the start is too low to make the budget bind later (dw1 -> dw1q).
 //!
 //! Metrics (`metrics.jsonl`, one record per collection round, against
 //! `env_steps`): `episodic_return`, `episodic_cost` (means over the episodes
@@ -100,7 +102,8 @@
 //! in-context signal), `discovery_rate` and `revisit_rate` (P(goal at episode
 //! k > 1 | not found / found earlier in the trajectory)), `found_goal`
 //! (fraction of trajectories that found it), `lambda`, `constrained`
-//! (whether the constraint acted in the round), `entropy_coef`,
+//! (whether the constraint acted in the round), `over_budget_price` (the
+//! excess price charged, 0 when none is), `entropy_coef`,
 //! `losses/value_loss`, `losses/cost_value_loss`, `losses/policy_loss`, `losses/entropy`, `losses/grad_norm`,
 //! `losses/goal_recall` (NaN without the head), `charts/epsilon`,
 //! `charts/updates_per_s`, `charts/env_steps_per_s`, `charts/cpu_learner` and
@@ -137,7 +140,7 @@ pub use agent::EppoAgent;
 pub use checkpoint::recorded_pretrain_tasks;
 pub use collect::{RoundStats, search_rates};
 pub use config::{
-    EppoConfig, EppoError, Exploration, NoveltyBudget, PenaltyForm, ViolationSignal,
+    EppoConfig, EppoError, Exploration, NoveltyBudget, PenaltyForm, PriceChange, ViolationSignal,
     memory_estimate, parse_device,
 };
 pub use losses::{UpdateStats, lambda_update};
@@ -287,7 +290,7 @@ impl Learner {
             &trajs,
             &self.cfg,
             &self.spec,
-            self.cfg.shaping(self.updates, self.constrained()),
+            self.cfg.shaping(self.updates, self.constraint_since()),
             &mut self.rng,
             self.device,
         );
@@ -364,11 +367,26 @@ impl Learner {
     /// Whether the constraint acts now: the multiplier moves and the
     /// over-budget price is charged.
     pub fn constrained(&self) -> bool {
-        self.constraint_start.on(
+        self.constraint_since().is_some()
+    }
+
+    /// The update at which the constraint came on, if it acts now.
+    pub fn constraint_since(&self) -> Option<u64> {
+        self.constraint_start.started_at(
             self.updates,
             self.cfg.lambda_warmup_updates,
             self.cfg.constraint_after_revisit,
         )
+    }
+
+    /// The price per unit of cost past an episode's budget that the critics'
+    /// rewards carry now (0 before the constraint, or with no priced
+    /// `penalty` form).
+    pub fn over_budget_price(&self) -> f64 {
+        self.cfg
+            .shaping(self.updates, self.constraint_since())
+            .over_budget
+            .map_or(0.0, |o| f64::from(o.cost_price))
     }
 
     /// Takes a collected round's measures into what the learner decides
@@ -643,10 +661,17 @@ impl Session {
         } else {
             " (constraint not on yet)"
         };
+        let penalty = match learner.cfg.penalty {
+            PenaltyForm::Excess | PenaltyForm::Saute => {
+                format!("price {:.2}", learner.over_budget_price())
+            }
+            PenaltyForm::Hindsight | PenaltyForm::Hinge => {
+                format!("lambda {:.3}", learner.multiplier.lambda)
+            }
+        };
         let line = format!(
-            "{}  lambda {:.3}{waiting}  {ups:.2} upd/s",
+            "{}  {penalty}{waiting}  {ups:.2} upd/s",
             self.recent.progress_line(self.random),
-            learner.multiplier.lambda
         );
         if self.log_lines && self.last_log_line.elapsed().as_secs() >= 30 {
             eprintln!(
@@ -736,6 +761,7 @@ fn round_record(
         "found_goal": round.found,
         "lambda": learner.multiplier.lambda,
         "constrained": learner.constrained(),
+        "over_budget_price": learner.over_budget_price(),
         "entropy_coef": learner.entropy_coef,
         "losses/value_loss": avg(|s| s.value_loss),
         "losses/cost_value_loss": avg(|s| s.cost_value_loss),

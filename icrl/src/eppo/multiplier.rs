@@ -87,12 +87,18 @@ pub struct ConstraintStart {
 }
 
 impl ConstraintStart {
+    /// The update at which the constraint came on, if it acts at update
+    /// `updates`.
+    pub fn started_at(&self, updates: u64, warmup: u64, after_revisit: Option<f64>) -> Option<u64> {
+        match after_revisit {
+            None => (updates >= warmup).then_some(warmup),
+            Some(_) => self.since,
+        }
+    }
+
     /// Whether the constraint acts at update `updates`.
     pub fn on(&self, updates: u64, warmup: u64, after_revisit: Option<f64>) -> bool {
-        match after_revisit {
-            None => updates >= warmup,
-            Some(_) => self.since.is_some(),
-        }
+        self.started_at(updates, warmup, after_revisit).is_some()
     }
 
     /// Takes one collection round's revisit rate (NaN when no trajectory

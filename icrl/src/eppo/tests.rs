@@ -573,7 +573,7 @@ fn priced_from_update_100(form: PenaltyForm) -> EppoConfig {
     assert!(!count.on(99, cfg.lambda_warmup_updates, None));
     assert!(count.on(100, cfg.lambda_warmup_updates, None));
     assert_eq!(
-        cfg.shaping(99, false).over_budget,
+        cfg.shaping(99, None).over_budget,
         None,
         "not before the constraint"
     );
@@ -674,7 +674,7 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
     cfg.saute_unsafe_reward = -0.25;
     cfg.validate().unwrap();
     assert_eq!(
-        cfg.shaping(100, true).over_budget,
+        cfg.shaping(100, Some(100)).over_budget,
         Some(OverBudget {
             replaced_reward: Some(-0.25),
             cost_price: 2.0,
@@ -719,7 +719,7 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
     );
     // Under another penalty form the same settings shape nothing.
     cfg.penalty = PenaltyForm::Hindsight;
-    assert_eq!(cfg.shaping(100, true).over_budget, None);
+    assert_eq!(cfg.shaping(100, Some(100)).over_budget, None);
     // The actor pays no lambda term: the price is in the reward.
     let qc = Tensor::from_slice(&[0.5f32, 2.0]).view([1, 2]);
     let ones = qc.ones_like();
@@ -759,7 +759,7 @@ fn excess_price_charges_each_unit_past_the_budget_and_keeps_the_goal() {
     let (t, spec) = overspent_walk();
     let mut cfg = priced_from_update_100(PenaltyForm::Excess);
     cfg.validate().unwrap();
-    let shaping = cfg.shaping(100, true);
+    let shaping = cfg.shaping(100, Some(100));
     assert_eq!(
         shaping.over_budget,
         Some(OverBudget {
@@ -809,6 +809,111 @@ fn excess_price_charges_each_unit_past_the_budget_and_keeps_the_goal() {
 }
 
 #[test]
+fn the_price_schedule_counts_updates_from_the_constraints_start() {
+    let (t, spec) = overspent_walk();
+    let mut cfg = priced_from_update_100(PenaltyForm::Excess);
+    let mut table = crate::presets::preset_table("eppo", "darkroom", "quick").unwrap();
+    let schedule =
+        "over_budget_price_schedule=[{ after = 50, price = 3.0 }, { after = 80, price = 5 }]";
+    crate::presets::apply_overrides(&mut table, &[schedule.to_string()]).unwrap();
+    let parsed: EppoConfig = crate::presets::resolve("schedule", table).unwrap();
+    cfg.over_budget_price_schedule = parsed.over_budget_price_schedule;
+    assert_eq!(
+        cfg.over_budget_price_schedule,
+        vec![
+            PriceChange {
+                after: 50,
+                price: 3.0
+            },
+            PriceChange {
+                after: 80,
+                price: 5.0
+            }
+        ]
+    );
+    cfg.validate().unwrap();
+    let price_at = |updates: u64, since: Option<u64>| {
+        cfg.shaping(updates, since)
+            .over_budget
+            .map(|o| o.cost_price)
+    };
+    assert_eq!(price_at(99, None), None, "nothing before the start");
+    for (updates, since, price) in [
+        (100, 100, 2.0),
+        (149, 100, 2.0),
+        (150, 100, 3.0),
+        (179, 100, 3.0),
+        (180, 100, 5.0),
+        (5000, 100, 5.0),
+        // From a measured start, not from update 0 or the warm-up.
+        (190, 140, 3.0),
+        (180, 131, 2.0),
+    ] {
+        assert_eq!(
+            price_at(updates, Some(since)),
+            Some(price),
+            "{updates} since {since}"
+        );
+    }
+    // The critics' rewards carry it: the walk's 1 and 2 units past the budget.
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let batch = make_batch(
+        &[&t],
+        &cfg,
+        &spec,
+        cfg.shaping(180, Some(100)),
+        &mut rng,
+        Device::Cpu,
+    );
+    let scale = cfg.reward_scale as f32;
+    let rewards: Vec<f32> = to_vec(&batch.rewards).iter().map(|r| r / scale).collect();
+    assert_eq!(rewards, vec![0.0, 0.0, -5.0, -10.0, 1.0, 0.0, 0.0, 0.0]);
+    // The learner reads it from its measured start and reports it.
+    cfg.constraint_after_revisit = Some(0.5);
+    cfg.constraint_revisit_rounds = 1;
+    cfg.lambda_warmup_updates = 0;
+    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+    assert_eq!(
+        learner.over_budget_price(),
+        0.0,
+        "not charged before the start"
+    );
+    learner.updates = 10;
+    learner.observe_round(&RoundStats {
+        revisit_rate: 0.9,
+        ..Default::default()
+    });
+    assert_eq!(learner.constraint_since(), Some(10));
+    assert_eq!(learner.over_budget_price(), 2.0);
+    learner.updates = 60;
+    assert_eq!(learner.over_budget_price(), 3.0);
+    learner.updates = 90;
+    assert_eq!(learner.over_budget_price(), 5.0);
+    // Refused where it would charge nothing or be read out of order.
+    let refused = |change: &dyn Fn(&mut EppoConfig), says: &str| {
+        let mut bad = cfg.clone();
+        change(&mut bad);
+        let err = bad.validate().unwrap_err().to_string();
+        assert!(err.contains(says), "{err}");
+    };
+    refused(
+        &|c| c.over_budget_price_schedule.reverse(),
+        "must rise from one change to the next",
+    );
+    refused(
+        &|c| c.over_budget_price_schedule[1].price = f64::NAN,
+        "price = NaN after 80 updates",
+    );
+    refused(
+        &|c| {
+            c.penalty = PenaltyForm::Hinge;
+            c.over_budget_cost_price = 0.0;
+        },
+        "over_budget_price_schedule changes the price",
+    );
+}
+
+#[test]
 fn novelty_within_budget_withholds_the_bonus_only_past_the_budget() {
     let (t, spec) = overspent_walk();
     let rewards_at = |updates: u64, within: bool| {
@@ -819,7 +924,10 @@ fn novelty_within_budget_withholds_the_bonus_only_past_the_budget() {
         }
         cfg.validate().unwrap();
         let mut rng = ChaCha8Rng::seed_from_u64(0);
-        let shaping = cfg.shaping(updates, updates >= cfg.lambda_warmup_updates);
+        let shaping = cfg.shaping(
+            updates,
+            (updates >= cfg.lambda_warmup_updates).then_some(100),
+        );
         let batch = make_batch(&[&t], &cfg, &spec, shaping, &mut rng, Device::Cpu);
         let scale = cfg.reward_scale as f32;
         to_vec(&batch.rewards)
@@ -872,7 +980,10 @@ fn novelty_by_remaining_share_scales_the_bonus_by_the_budget_left() {
             &[t],
             &cfg,
             &spec,
-            cfg.shaping(updates, updates >= cfg.lambda_warmup_updates),
+            cfg.shaping(
+                updates,
+                (updates >= cfg.lambda_warmup_updates).then_some(100),
+            ),
             &mut rng,
             Device::Cpu,
         );
