@@ -1,5 +1,6 @@
 //! EPPO checkpoints: writing and resuming a [`Learner`] (weights, target
-//! weights, Adam moments, lambda, counters, RNG state, resolved config) and
+//! weights, Adam moments, the replay, lambda, counters, RNG state, resolved
+//! config) and
 //! the model manifest that resuming and loading check.
 
 use std::path::{Path, PathBuf};
@@ -14,6 +15,7 @@ use super::Learner;
 use super::config::{EppoConfig, EppoError};
 use super::multiplier::{ConstraintStart, Multiplier};
 use super::net::NetSpec;
+use super::replay::Replay;
 use crate::checkpoint::{CheckpointError, RunDir, read_manifest};
 use crate::task_seeds::PretrainTasks;
 
@@ -24,7 +26,7 @@ impl Learner {
     }
 
     /// Writes `checkpoints/step_{updates}` (weights, target weights, Adam
-    /// moments, lambda, counters, RNG state, resolved config).
+    /// moments, the replay, lambda, counters, RNG state, resolved config).
     pub fn save_checkpoint(&self, run: &RunDir) -> Result<PathBuf, EppoError> {
         let state = TrainState {
             lambda: self.multiplier.lambda,
@@ -69,6 +71,8 @@ impl Learner {
                 self.target_vs
                     .save(&p)
                     .map_err(|e| wrap(p.clone(), e.to_string()))?;
+                let p = dir.join(REPLAY_FILE);
+                self.replay.save(&p).map_err(|e| wrap(p.clone(), e))?;
                 let p = dir.join("optimizer.safetensors");
                 self.opt
                     .save(&p)
@@ -86,7 +90,9 @@ impl Learner {
 
     /// Restores a learner from a checkpoint folder written by
     /// [`Learner::save_checkpoint`], after checking it matches `cfg` and `env`.
-    /// The replay buffer is not checkpointed: it refills from the resumed policy.
+    /// A checkpoint without the replay (written before it was saved, or
+    /// copied without it) resumes with an empty one, which refills from the
+    /// resumed policy.
     pub fn resume(cfg: EppoConfig, env: EnvName, dir: &Path) -> Result<Self, EppoError> {
         let manifest = read_manifest(dir)?;
         let mut learner = Learner::new(cfg, env)?;
@@ -175,9 +181,23 @@ impl Learner {
                 .map_err(|e| bad("state.json", e.to_string()))?,
         );
         learner.rng = rng;
+        let replay = dir.join(REPLAY_FILE);
+        if replay.exists() {
+            learner.replay = Replay::load(&replay, learner.cfg.replay_capacity)
+                .map_err(|e| bad(REPLAY_FILE, e))?;
+        } else {
+            eprintln!(
+                "{} holds no {REPLAY_FILE}: the replay refills from the resumed policy, and the \
+                 first rounds train on few trajectories",
+                dir.display()
+            );
+        }
         Ok(learner)
     }
 }
+
+/// The replay buffer's file in a checkpoint folder.
+pub(super) const REPLAY_FILE: &str = "replay.safetensors";
 
 /// Counters and RNG state in `state.json`.
 #[derive(Debug, Serialize, Deserialize)]

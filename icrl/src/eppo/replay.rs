@@ -3,7 +3,8 @@
 //! evaluation) and the masks that keep `terminated` and `truncated` apart all
 //! the way into the TD targets.
 
-use std::collections::{HashSet, VecDeque};
+use std::collections::{HashMap, HashSet, VecDeque};
+use std::path::Path;
 
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
@@ -16,7 +17,7 @@ use super::net::NetSpec;
 use crate::tokens::{self, StepToken};
 
 /// K episodes in one task with one budget, as collected.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct Trajectory {
     /// The per-episode cost budget delta.
     pub budget: f32,
@@ -133,6 +134,173 @@ impl Replay {
             .map(|_| &self.trajectories[rng.gen_range(0..self.trajectories.len())])
             .collect()
     }
+
+    /// Writes the held trajectories to `path` (safetensors: each field's
+    /// values concatenated over trajectories, with their lengths), so that a
+    /// resumed run samples what the uninterrupted one would have. A resume
+    /// that refilled from an empty replay trained its first rounds on a few
+    /// fresh trajectories, and its return and Q dropped for hundreds of
+    /// updates (results/eppo_darkroom_budget, session 40).
+    pub(super) fn save(&self, path: &Path) -> Result<(), String> {
+        let ts = &self.trajectories;
+        let floats = |f: fn(&Trajectory) -> &[f32]| {
+            Tensor::from_slice(
+                &ts.iter()
+                    .flat_map(|t| f(t).iter().copied())
+                    .collect::<Vec<_>>(),
+            )
+        };
+        let flags = |f: fn(&Trajectory) -> &[bool]| {
+            let v: Vec<u8> = ts
+                .iter()
+                .flat_map(|t| f(t).iter().map(|&b| u8::from(b)))
+                .collect();
+            Tensor::from_slice(&v)
+        };
+        let ints = |v: Vec<i64>| Tensor::from_slice(&v);
+        let tensors = [
+            ("steps", ints(ts.iter().map(|t| t.len() as i64).collect())),
+            (
+                "episodes",
+                ints(ts.iter().map(|t| t.episode_returns.len() as i64).collect()),
+            ),
+            (
+                "budget",
+                Tensor::from_slice(&ts.iter().map(|t| t.budget).collect::<Vec<_>>()),
+            ),
+            ("goal", floats(|t| &t.goal)),
+            ("obs", floats(|t| &t.obs)),
+            ("next_obs", floats(|t| &t.next_obs)),
+            ("actions", floats(|t| &t.actions)),
+            (
+                "action_idx",
+                ints(
+                    ts.iter()
+                        .flat_map(|t| t.action_idx.iter().copied())
+                        .collect(),
+                ),
+            ),
+            ("rewards", floats(|t| &t.rewards)),
+            ("costs", floats(|t| &t.costs)),
+            ("ctg", floats(|t| &t.ctg)),
+            ("start", flags(|t| &t.start)),
+            ("terminated", flags(|t| &t.terminated)),
+            ("truncated", flags(|t| &t.truncated)),
+            (
+                "episode",
+                ints(
+                    ts.iter()
+                        .flat_map(|t| t.episode.iter().map(|&e| i64::from(e)))
+                        .collect(),
+                ),
+            ),
+            ("episode_returns", floats(|t| &t.episode_returns)),
+            ("episode_costs", floats(|t| &t.episode_costs)),
+            ("episode_success", flags(|t| &t.episode_success)),
+        ];
+        Tensor::write_safetensors(&tensors, path).map_err(|e| e.to_string())
+    }
+
+    /// Reads a replay written by [`Replay::save`] into a buffer of `capacity`
+    /// steps (the oldest trajectories dropped if it holds fewer).
+    pub(super) fn load(path: &Path, capacity: usize) -> Result<Self, String> {
+        let mut fields: HashMap<String, Tensor> = Tensor::read_safetensors(path)
+            .map_err(|e| e.to_string())?
+            .into_iter()
+            .collect();
+        let mut floats = |name: &str| field::<f32>(&mut fields, name);
+        let (obs, next_obs, actions) = (floats("obs")?, floats("next_obs")?, floats("actions")?);
+        let (rewards, costs, ctg) = (floats("rewards")?, floats("costs")?, floats("ctg")?);
+        let (budget, goal) = (floats("budget")?, floats("goal")?);
+        let episode_returns = floats("episode_returns")?;
+        let episode_costs = floats("episode_costs")?;
+        let mut ints = |name: &str| field::<i64>(&mut fields, name);
+        let (lengths, episodes) = (ints("steps")?, ints("episodes")?);
+        let (action_idx, episode) = (ints("action_idx")?, ints("episode")?);
+        let mut flags = |name: &str| {
+            field::<u8>(&mut fields, name)
+                .map(|v| v.into_iter().map(|b| b != 0).collect::<Vec<_>>())
+        };
+        let (start, terminated) = (flags("start")?, flags("terminated")?);
+        let (truncated, episode_success) = (flags("truncated")?, flags("episode_success")?);
+
+        let total: usize = lengths.iter().map(|&n| n.max(0) as usize).sum();
+        let n_episodes: usize = episodes.iter().map(|&n| n.max(0) as usize).sum();
+        let width = |len: usize, name: &str| {
+            if !len.is_multiple_of(total) {
+                Err(format!("`{name}` holds {len} values for {total} steps"))
+            } else {
+                Ok(len / total)
+            }
+        };
+        let n = lengths.len();
+        if total == 0 {
+            return Ok(Replay::new(capacity));
+        }
+        let obs_dim = width(obs.len(), "obs")?;
+        let act_dim = width(actions.len(), "actions")?;
+        let per_step_ok = [&rewards, &costs, &ctg].iter().all(|v| v.len() == total)
+            && [&start, &terminated, &truncated]
+                .iter()
+                .all(|v| v.len() == total)
+            && next_obs.len() == obs.len()
+            && episode.len() == total
+            && (action_idx.is_empty() || action_idx.len() == total);
+        let per_traj_ok = episodes.len() == n && budget.len() == n && goal.len() == 2 * n;
+        let per_episode_ok = [&episode_returns, &episode_costs]
+            .iter()
+            .all(|v| v.len() == n_episodes)
+            && episode_success.len() == n_episodes;
+        if !(per_step_ok && per_traj_ok && per_episode_ok) {
+            return Err(format!(
+                "the fields' sizes do not agree with {n} trajectories of {total} steps and \
+                 {n_episodes} episodes"
+            ));
+        }
+        let mut replay = Replay::new(capacity);
+        let (mut at, mut ep) = (0, 0);
+        for i in 0..n {
+            let (len, k) = (lengths[i] as usize, episodes[i] as usize);
+            let steps = at..at + len;
+            let eps = ep..ep + k;
+            replay.push(Trajectory {
+                budget: budget[i],
+                goal: [goal[2 * i], goal[2 * i + 1]],
+                obs: obs[at * obs_dim..(at + len) * obs_dim].to_vec(),
+                next_obs: next_obs[at * obs_dim..(at + len) * obs_dim].to_vec(),
+                actions: actions[at * act_dim..(at + len) * act_dim].to_vec(),
+                action_idx: if action_idx.is_empty() {
+                    Vec::new()
+                } else {
+                    action_idx[steps.clone()].to_vec()
+                },
+                rewards: rewards[steps.clone()].to_vec(),
+                costs: costs[steps.clone()].to_vec(),
+                ctg: ctg[steps.clone()].to_vec(),
+                start: start[steps.clone()].to_vec(),
+                terminated: terminated[steps.clone()].to_vec(),
+                truncated: truncated[steps.clone()].to_vec(),
+                episode: episode[steps].iter().map(|&e| e as u32).collect(),
+                episode_returns: episode_returns[eps.clone()].to_vec(),
+                episode_costs: episode_costs[eps.clone()].to_vec(),
+                episode_success: episode_success[eps].to_vec(),
+            });
+            at += len;
+            ep += k;
+        }
+        Ok(replay)
+    }
+}
+
+/// One named field of a saved replay, as a vector.
+fn field<T>(fields: &mut HashMap<String, Tensor>, name: &str) -> Result<Vec<T>, String>
+where
+    Vec<T>: for<'a> TryFrom<&'a Tensor, Error = tch::TchError>,
+{
+    let t = fields
+        .remove(name)
+        .ok_or_else(|| format!("no `{name}` tensor"))?;
+    Vec::<T>::try_from(&t).map_err(|e| format!("`{name}`: {e}"))
 }
 
 /// Writes one token ([`crate::tokens`], shared with supervised pretraining):

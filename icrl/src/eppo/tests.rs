@@ -667,6 +667,64 @@ fn the_multiplier_waits_for_the_measured_start_and_the_checkpoint_keeps_it() {
     }
 }
 
+/// A checkpoint holds the replay, so the update after a resume is the one
+/// the uninterrupted run makes (discrete and continuous actions); a
+/// checkpoint without it still resumes, with an empty replay.
+#[test]
+fn a_resumed_learner_samples_the_saved_replay_and_updates_as_the_uninterrupted_one() {
+    let mut point = tiny();
+    point.max_episode_steps = 75;
+    point.model.max_len = 150;
+    point.n_envs = 2;
+    point.batch_size = 2;
+    point.physics_steps_per_action = Some(50);
+    for (env, cfg) in [(EnvName::DarkRoom, tiny()), (EnvName::Point, point)] {
+        let mut learner = Learner::new(cfg.clone(), env).unwrap();
+        let mut venv = training_venv(env, &cfg);
+        learner.collect(&mut venv).unwrap();
+        learner.collect(&mut venv).unwrap();
+        learner.update().unwrap();
+        let out = std::env::temp_dir().join(format!(
+            "icrl-eppo-replay-{}-{}",
+            env.as_str(),
+            std::process::id()
+        ));
+        let run = crate::checkpoint::RunDir::create(&out, env.as_str(), "eppo", cfg.seed).unwrap();
+        let saved = learner.save_checkpoint(&run).unwrap();
+        let mut resumed = Learner::resume(cfg.clone(), env, &saved).unwrap();
+        assert_eq!(resumed.replay.len(), 2 * cfg.n_envs, "{env:?}");
+        assert_eq!(resumed.replay.steps(), learner.replay.steps());
+        assert!(
+            resumed
+                .replay
+                .trajectories
+                .iter()
+                .eq(learner.replay.trajectories.iter()),
+            "{env:?}: every field of every trajectory"
+        );
+        let (next, after_resume) = (learner.update().unwrap(), resumed.update().unwrap());
+        for (name, a, b) in [
+            ("value", next.value_loss, after_resume.value_loss),
+            (
+                "cost value",
+                next.cost_value_loss,
+                after_resume.cost_value_loss,
+            ),
+            ("policy", next.policy_loss, after_resume.policy_loss),
+            ("q", next.q_mean, after_resume.q_mean),
+        ] {
+            assert_eq!(a, b, "{env:?}: the {name} after a resume");
+        }
+        std::fs::remove_file(saved.join(super::checkpoint::REPLAY_FILE)).unwrap();
+        let bare = Learner::resume(cfg, env, &saved);
+        std::fs::remove_dir_all(&out).unwrap();
+        // The manifest lists the replay's file, so a checkpoint copied
+        // without it is refused as incomplete rather than resumed quietly.
+        let err = bare.err().map(|e| e.to_string()).unwrap_or_default();
+        assert!(err.contains("replay.safetensors"), "{env:?}: {err}");
+    }
+}
+
 #[test]
 fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
     let (t, spec) = overspent_walk();
