@@ -560,6 +560,7 @@ fn checkpoint_loaders_survive_mutated_checkpoints() {
                 ckpt.join("optimizer.safetensors")
             },
             run.join("config.toml"),
+            ckpt.join("replay.safetensors"),
         ]
         .into_iter()
         .filter(|p| p.exists())

@@ -224,8 +224,11 @@ impl Replay {
         let (start, terminated) = (flags("start")?, flags("terminated")?);
         let (truncated, episode_success) = (flags("truncated")?, flags("episode_success")?);
 
-        let total: usize = lengths.iter().map(|&n| n.max(0) as usize).sum();
-        let n_episodes: usize = episodes.iter().map(|&n| n.max(0) as usize).sum();
+        if let Some(n) = lengths.iter().chain(&episodes).find(|&&n| n < 0) {
+            return Err(format!("a trajectory of {n} steps or episodes"));
+        }
+        let total: usize = lengths.iter().map(|&n| n as usize).sum();
+        let n_episodes: usize = episodes.iter().map(|&n| n as usize).sum();
         let width = |len: usize, name: &str| {
             if !len.is_multiple_of(total) {
                 Err(format!("`{name}` holds {len} values for {total} steps"))
