@@ -33,6 +33,10 @@ const PRESETS: &[(&str, &str)] = &[
         include_str!("../presets/eppo-darkroom-quick.toml"),
     ),
     (
+        "eppo-darkroom-budget",
+        include_str!("../presets/eppo-darkroom-budget.toml"),
+    ),
+    (
         "eppo-point-table1",
         include_str!("../presets/eppo-point-table1.toml"),
     ),
