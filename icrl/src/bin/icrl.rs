@@ -429,12 +429,16 @@ fn pretrain(mut args: PretrainArgs) -> anyhow::Result<()> {
         &sets,
         &args.out,
     )?;
+    let penalty = if report.over_budget_price > 0.0 {
+        format!("over-budget price {:.2}", report.over_budget_price)
+    } else {
+        format!("lambda {:.4}", report.lambda)
+    };
     println!(
-        "run {} finished: {} updates, {} env steps, lambda {:.4}",
+        "run {} finished: {} updates, {} env steps, {penalty}",
         report.run_dir.display(),
         report.updates,
         report.env_steps,
-        report.lambda,
     );
     print_learning_summary(&args.env, &report)?;
     Ok(())

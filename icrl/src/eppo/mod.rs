@@ -451,6 +451,9 @@ pub struct PretrainReport {
     pub updates: u64,
     pub env_steps: u64,
     pub lambda: f64,
+    /// The price per unit of cost past the budget at the end (0 when the
+    /// penalty form charges none).
+    pub over_budget_price: f64,
     /// A uniformly random policy on the pretraining tasks, for scale.
     pub random: crate::run_summary::ReturnCost,
 }
@@ -709,6 +712,7 @@ impl Session {
             updates: learner.updates,
             env_steps: learner.env_steps,
             lambda: learner.multiplier.lambda,
+            over_budget_price: learner.over_budget_price(),
             random: self.random,
         })
     }
