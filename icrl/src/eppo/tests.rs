@@ -56,6 +56,18 @@ fn tiny_learner(seed: u64) -> (Learner, VecEnv) {
     (learner, training_venv(EnvName::DarkRoom, &cfg))
 }
 
+/// [`tiny`] for Point: two trajectories of two 75-step episodes, macro
+/// actions of 50 physics steps.
+fn tiny_point() -> EppoConfig {
+    let mut cfg = tiny();
+    cfg.max_episode_steps = 75;
+    cfg.model.max_len = 150;
+    cfg.n_envs = 2;
+    cfg.batch_size = 2;
+    cfg.physics_steps_per_action = Some(50);
+    cfg
+}
+
 /// `cfg.n_envs` training environments of `env`, stepped on one thread.
 fn training_venv(env: EnvName, cfg: &EppoConfig) -> VecEnv {
     let envs = (0..cfg.n_envs)
@@ -203,12 +215,7 @@ fn relabelled_goals_are_reached_positions_away_from_the_start() {
 
 #[test]
 fn the_scripted_first_episode_reaches_the_goal_and_relabelled_updates_run() {
-    let mut cfg = tiny();
-    cfg.max_episode_steps = 75;
-    cfg.model.max_len = 150;
-    cfg.n_envs = 2;
-    cfg.batch_size = 2;
-    cfg.physics_steps_per_action = Some(50);
+    let mut cfg = tiny_point();
     cfg.scripted_first_episode = true;
     cfg.relabel_prob = 1.0;
     let darkroom = EppoConfig {
@@ -668,17 +675,11 @@ fn the_multiplier_waits_for_the_measured_start_and_the_checkpoint_keeps_it() {
 }
 
 /// A checkpoint holds the replay, so the update after a resume is the one
-/// the uninterrupted run makes (discrete and continuous actions); a
-/// checkpoint without it still resumes, with an empty replay.
+/// the uninterrupted run makes (discrete and continuous actions); one
+/// copied without it is refused as incomplete.
 #[test]
 fn a_resumed_learner_samples_the_saved_replay_and_updates_as_the_uninterrupted_one() {
-    let mut point = tiny();
-    point.max_episode_steps = 75;
-    point.model.max_len = 150;
-    point.n_envs = 2;
-    point.batch_size = 2;
-    point.physics_steps_per_action = Some(50);
-    for (env, cfg) in [(EnvName::DarkRoom, tiny()), (EnvName::Point, point)] {
+    for (env, cfg) in [(EnvName::DarkRoom, tiny()), (EnvName::Point, tiny_point())] {
         let mut learner = Learner::new(cfg.clone(), env).unwrap();
         let mut venv = training_venv(env, &cfg);
         learner.collect(&mut venv).unwrap();
