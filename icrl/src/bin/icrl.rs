@@ -429,16 +429,12 @@ fn pretrain(mut args: PretrainArgs) -> anyhow::Result<()> {
         &sets,
         &args.out,
     )?;
-    let penalty = if report.over_budget_price > 0.0 {
-        format!("over-budget price {:.2}", report.over_budget_price)
-    } else {
-        format!("lambda {:.4}", report.lambda)
-    };
     println!(
-        "run {} finished: {} updates, {} env steps, {penalty}",
+        "run {} finished: {} updates, {} env steps, {}",
         report.run_dir.display(),
         report.updates,
         report.env_steps,
+        report.penalty,
     );
     print_learning_summary(&args.env, &report)?;
     Ok(())

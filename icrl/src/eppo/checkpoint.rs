@@ -90,9 +90,9 @@ impl Learner {
 
     /// Restores a learner from a checkpoint folder written by
     /// [`Learner::save_checkpoint`], after checking it matches `cfg` and `env`.
-    /// A checkpoint without the replay (written before it was saved, or
-    /// copied without it) resumes with an empty one, which refills from the
-    /// resumed policy.
+    /// A checkpoint from before the replay was saved resumes with an empty
+    /// one, which refills from the resumed policy (one whose manifest lists
+    /// the replay and lacks it is refused as incomplete).
     pub fn resume(cfg: EppoConfig, env: EnvName, dir: &Path) -> Result<Self, EppoError> {
         let manifest = read_manifest(dir)?;
         let mut learner = Learner::new(cfg, env)?;

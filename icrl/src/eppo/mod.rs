@@ -389,6 +389,19 @@ impl Learner {
             .map_or(0.0, |o| f64::from(o.cost_price))
     }
 
+    /// The penalty's state for a progress or summary line: the over-budget
+    /// price under the forms that charge one, lambda under the others.
+    pub fn penalty_reading(&self) -> String {
+        match self.cfg.penalty {
+            PenaltyForm::Excess | PenaltyForm::Saute => {
+                format!("over-budget price {:.2}", self.over_budget_price())
+            }
+            PenaltyForm::Hindsight | PenaltyForm::Hinge => {
+                format!("lambda {:.4}", self.multiplier.lambda)
+            }
+        }
+    }
+
     /// Takes a collected round's measures into what the learner decides
     /// from them (when the constraint starts).
     pub fn observe_round(&mut self, round: &RoundStats) {
@@ -451,9 +464,8 @@ pub struct PretrainReport {
     pub updates: u64,
     pub env_steps: u64,
     pub lambda: f64,
-    /// The price per unit of cost past the budget at the end (0 when the
-    /// penalty form charges none).
-    pub over_budget_price: f64,
+    /// The penalty's state at the end ([`Learner::penalty_reading`]).
+    pub penalty: String,
     /// A uniformly random policy on the pretraining tasks, for scale.
     pub random: crate::run_summary::ReturnCost,
 }
@@ -664,17 +676,10 @@ impl Session {
         } else {
             " (constraint not on yet)"
         };
-        let penalty = match learner.cfg.penalty {
-            PenaltyForm::Excess | PenaltyForm::Saute => {
-                format!("price {:.2}", learner.over_budget_price())
-            }
-            PenaltyForm::Hindsight | PenaltyForm::Hinge => {
-                format!("lambda {:.3}", learner.multiplier.lambda)
-            }
-        };
         let line = format!(
-            "{}  {penalty}{waiting}  {ups:.2} upd/s",
+            "{}  {}{waiting}  {ups:.2} upd/s",
             self.recent.progress_line(self.random),
+            learner.penalty_reading(),
         );
         if self.log_lines && self.last_log_line.elapsed().as_secs() >= 30 {
             eprintln!(
@@ -712,7 +717,7 @@ impl Session {
             updates: learner.updates,
             env_steps: learner.env_steps,
             lambda: learner.multiplier.lambda,
-            over_budget_price: learner.over_budget_price(),
+            penalty: learner.penalty_reading(),
             random: self.random,
         })
     }

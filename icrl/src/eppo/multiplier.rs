@@ -96,11 +96,6 @@ impl ConstraintStart {
         }
     }
 
-    /// Whether the constraint acts at update `updates`.
-    pub fn on(&self, updates: u64, warmup: u64, after_revisit: Option<f64>) -> bool {
-        self.started_at(updates, warmup, after_revisit).is_some()
-    }
-
     /// Takes one collection round's revisit rate (NaN when no trajectory
     /// found the goal before its last episode: not counted) and starts the
     /// constraint once the window's mean reaches `threshold`.

@@ -229,6 +229,9 @@ impl Replay {
         }
         let total: usize = lengths.iter().map(|&n| n as usize).sum();
         let n_episodes: usize = episodes.iter().map(|&n| n as usize).sum();
+        if total == 0 {
+            return Ok(Replay::new(capacity));
+        }
         let width = |len: usize, name: &str| {
             if !len.is_multiple_of(total) {
                 Err(format!("`{name}` holds {len} values for {total} steps"))
@@ -237,9 +240,6 @@ impl Replay {
             }
         };
         let n = lengths.len();
-        if total == 0 {
-            return Ok(Replay::new(capacity));
-        }
         let obs_dim = width(obs.len(), "obs")?;
         let act_dim = width(actions.len(), "actions")?;
         let per_step_ok = [&rewards, &costs, &ctg].iter().all(|v| v.len() == total)

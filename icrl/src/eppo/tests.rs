@@ -577,8 +577,11 @@ fn priced_from_update_100(form: PenaltyForm) -> EppoConfig {
     cfg.lambda_warmup_updates = 100;
     cfg.over_budget_cost_price = 2.0;
     let count = ConstraintStart::default();
-    assert!(!count.on(99, cfg.lambda_warmup_updates, None));
-    assert!(count.on(100, cfg.lambda_warmup_updates, None));
+    assert_eq!(count.started_at(99, cfg.lambda_warmup_updates, None), None);
+    assert_eq!(
+        count.started_at(100, cfg.lambda_warmup_updates, None),
+        Some(100)
+    );
     assert_eq!(
         cfg.shaping(99, None).over_budget,
         None,
@@ -593,13 +596,13 @@ fn a_measured_constraint_start_waits_for_the_warmup_and_the_revisit_rate() {
     let mut start = ConstraintStart::default();
     let observe = |start: &mut ConstraintStart, rate: f64, updates: u64| {
         start.observe(rate, updates, warmup, threshold, rounds);
-        start.on(updates, warmup, Some(threshold))
+        start.started_at(updates, warmup, Some(threshold)).is_some()
     };
     // Revisiting, but inside the warm-up: off, though the count alone would not say so.
     for updates in [50, 60, 70] {
         assert!(!observe(&mut start, 0.9, updates));
     }
-    assert!(start.on(100, warmup, None));
+    assert!(start.started_at(100, warmup, None).is_some());
     // A round with nothing to revisit (NaN) does not count, either way.
     let mut low = ConstraintStart::default();
     for rate in [0.9, 0.9, 0.5, f64::NAN, 0.9] {
