@@ -92,8 +92,9 @@
 //! training revisit rate to reach a level (`multiplier::ConstraintStart`):
 //! priced before the agent comes back to the goals it finds, it learns to
 //! search and never to come back (dx1). `over_budget_price_schedule` raises
-//! the price in steps after that start: the price that lets search survive
-//! the start is too low to make the budget bind later (dw1 -> dw1q).
+//! the price in steps after that start, or linearly with
+//! `over_budget_price_ramp`: the price that lets search survive the start is
+//! too low to make the budget bind later (dw1 -> dw1q).
 //!
 //! Metrics (`metrics.jsonl`, one record per collection round, against
 //! `env_steps`): `episodic_return`, `episodic_cost` (means over the episodes
