@@ -1,0 +1,553 @@
+//! Collection and what the critics see of it: Algorithm 1's trajectories,
+//! hindsight relabelling, the scripted first episode, exploration noise, the
+//! dense and novelty rewards, the search rates.
+
+use super::*;
+
+#[test]
+fn collected_trajectories_follow_algorithm_1() {
+    let (mut learner, mut venv) = tiny_learner(0);
+    let stats = learner.collect(&mut venv).unwrap();
+    assert_eq!(stats.trajectories, 3);
+    assert_eq!(learner.replay.len(), 3);
+    for t in &learner.replay.trajectories {
+        assert_eq!(t.episode_returns.len(), 2, "K = 2 episodes");
+        assert!(t.budget >= 1.0 && t.budget <= 15.0);
+        assert!(t.len() <= 12 && t.start[0]);
+        for s in 0..t.len() {
+            // CTG restarts at the budget each episode and decreases by costs.
+            let expected = if t.start[s] {
+                t.budget
+            } else {
+                t.ctg[s - 1] - t.costs[s - 1]
+            };
+            assert_eq!(t.ctg[s], expected, "step {s}");
+            assert!(!(t.terminated[s] && t.truncated[s]));
+            assert_eq!(
+                t.terminated[s],
+                t.rewards[s] > 0.0,
+                "the goal reward ends the episode"
+            );
+        }
+        let ends = (0..t.len())
+            .filter(|&s| t.terminated[s] || t.truncated[s])
+            .count();
+        assert_eq!(ends, 2);
+    }
+}
+
+const GRID_RULE: GoalRule = GoalRule {
+    xy: [0, 1],
+    radius: 0.0,
+    min_start_distance: 1.0,
+};
+
+#[test]
+fn relabelled_trajectory_is_one_where_that_position_was_the_goal() {
+    let t = two_episode_trajectory();
+    let r = relabel(&t, 2, 1, &GRID_RULE, [4.0, 6.0]);
+    // Episode 0 ends on arrival at (4, 6): the third step is cut.
+    // Episode 1 never arrives there: its real goal is no goal now, so it
+    // ends where it was recorded to, truncated, without reward.
+    assert_eq!(r.len(), 4);
+    assert_eq!(r.obs, [4.0, 4.0, 4.0, 5.0, 4.0, 4.0, 5.0, 4.0]);
+    assert_eq!(r.next_obs, [4.0, 5.0, 4.0, 6.0, 5.0, 4.0, 5.0, 5.0]);
+    assert_eq!(r.actions, [0.0, 1.0, 3.0, 4.0]);
+    assert_eq!(r.action_idx, [0, 1, 3, 4]);
+    assert_eq!(r.rewards, [0.0, 1.0, 0.0, 0.0]);
+    assert_eq!(r.terminated, [false, true, false, false]);
+    assert_eq!(r.truncated, [false, false, false, true]);
+    assert_eq!(r.start, [true, false, true, false]);
+    assert_eq!(r.episode, [0, 0, 1, 1]);
+    assert_eq!(r.episode_returns, [1.0, 0.0]);
+    assert_eq!(r.episode_success, [true, false]);
+    // Costs, CTGs and the budget as recorded, for the steps kept.
+    assert_eq!(r.costs, [0.0, 1.0, 1.0, 0.0]);
+    assert_eq!(r.ctg, [0.5, 0.5, 0.5, -0.5]);
+    assert_eq!(r.episode_costs, [1.0, 1.0]);
+    assert_eq!(r.budget, t.budget);
+    assert_eq!(r.max_violation(), 0.5);
+    // Relabelled at its own goal, a trajectory is unchanged.
+    let same = relabel(&t, 2, 1, &GRID_RULE, [5.0, 5.0]);
+    assert_eq!(same.rewards, t.rewards);
+    assert_eq!(same.terminated, t.terminated);
+    assert_eq!(same.truncated, t.truncated);
+    assert_eq!(same.obs, t.obs);
+    assert_eq!(same.episode_success, t.episode_success);
+}
+
+#[test]
+fn relabelled_goals_are_reached_positions_away_from_the_start() {
+    let t = two_episode_trajectory();
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let far = GoalRule {
+        min_start_distance: 1.9,
+        ..GRID_RULE
+    };
+    for _ in 0..50 {
+        let g = pick_goal(&t, 2, &GRID_RULE, &mut rng).unwrap();
+        let arrived = t.next_obs.chunks(2).any(|o| o == g);
+        assert!(arrived && g != [4.0, 4.0], "{g:?}");
+        // Only (4, 6) and (3, 6) are 2 or more from the start (4, 4).
+        let g = pick_goal(&t, 2, &far, &mut rng).unwrap();
+        assert!(g == [4.0, 6.0] || g == [3.0, 6.0], "{g:?}");
+    }
+    let none = GoalRule {
+        min_start_distance: 10.0,
+        ..GRID_RULE
+    };
+    assert_eq!(pick_goal(&t, 2, &none, &mut rng), None);
+}
+
+#[test]
+fn the_scripted_first_episode_reaches_the_goal_and_relabelled_updates_run() {
+    let mut cfg = tiny_point();
+    cfg.scripted_first_episode = true;
+    cfg.relabel_prob = 1.0;
+    let darkroom = EppoConfig {
+        physics_steps_per_action: None,
+        ..cfg.clone()
+    };
+    let e = Learner::new(darkroom, EnvName::DarkRoom).err().unwrap();
+    assert!(e.to_string().contains("scripted_first_episode"), "{e}");
+    let mut learner = Learner::new(cfg.clone(), EnvName::Point).unwrap();
+    let mut venv = training_venv(EnvName::Point, &cfg);
+    learner.collect(&mut venv).unwrap();
+    for t in &learner.replay.trajectories {
+        assert!(t.episode_success[0], "the controller reaches every goal");
+        assert!(t.actions.iter().all(|x| x.abs() <= 1.0));
+    }
+    let stats = learner.update().unwrap();
+    assert!(stats.value_loss.is_finite() && stats.policy_loss.is_finite());
+    // A share of 0.5: some first episodes are driven to the goal, the rest
+    // are the untrained policy's, which rarely reaches it.
+    let share = EppoConfig {
+        scripted_share: 0.5,
+        n_envs: 8,
+        ..cfg
+    };
+    let mut learner = Learner::new(share.clone(), EnvName::Point).unwrap();
+    let mut venv = training_venv(EnvName::Point, &share);
+    learner.collect(&mut venv).unwrap();
+    let first_found: Vec<bool> = learner
+        .replay
+        .trajectories
+        .iter()
+        .map(|t| t.episode_success[0])
+        .collect();
+    assert!(
+        first_found.contains(&true) && first_found.contains(&false),
+        "{first_found:?}"
+    );
+}
+
+#[test]
+fn the_dense_critic_reward_shapes_targets_and_leaves_tokens_sparse() {
+    let (mut learner, mut venv) = tiny_learner(0);
+    learner.collect(&mut venv).unwrap();
+    let trajs: Vec<&Trajectory> = learner.replay.trajectories.iter().collect();
+    let sparse_cfg = learner.cfg.clone();
+    let dense_cfg = EppoConfig {
+        dense_reward_coef: 0.5,
+        ..sparse_cfg.clone()
+    };
+    let batch = |cfg: &EppoConfig| {
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        unshaped_batch(&trajs, cfg, &learner.spec, &mut rng)
+    };
+    let (sparse, dense) = (batch(&sparse_cfg), batch(&dense_cfg));
+    assert_eq!(
+        to_vec(&sparse.tokens),
+        to_vec(&dense.tokens),
+        "tokens stay sparse"
+    );
+    let (rs, rd) = (to_vec(&sparse.rewards), to_vec(&dense.rewards));
+    let valid = to_vec(&sparse.valid);
+    let l = rs.len() / trajs.len();
+    let scale = sparse_cfg.reward_scale as f32;
+    let mut shaped = 0;
+    for (j, t) in trajs.iter().enumerate() {
+        for step in 0..t.len().min(l) {
+            let k = j * l + step;
+            assert_eq!(valid[k], 1.0);
+            let d = |o: &[f32]| GoalRule::distance([o[0], o[1]], t.goal);
+            let progress =
+                d(&t.obs[step * 2..step * 2 + 2]) - d(&t.next_obs[step * 2..step * 2 + 2]);
+            assert!(
+                (rd[k] - rs[k] - 0.5 * progress * scale).abs() < 1e-5,
+                "step {step}"
+            );
+            shaped += usize::from(progress != 0.0);
+        }
+    }
+    assert!(shaped > 0, "some step moved relative to the goal");
+}
+
+#[test]
+fn the_dense_reward_after_the_goal_waits_for_a_success_in_the_context() {
+    let (learner, _) = tiny_learner(0);
+    // Relabelled at (4, 6): episode 0 reaches it at step 1; steps 2 and 3
+    // (episode 1) have that success in their context.
+    let mut t = relabel(&two_episode_trajectory(), 2, 1, &GRID_RULE, [4.0, 6.0]);
+    t.actions = vec![0.0; t.len() * learner.spec.act_flat()];
+    let rewards = |coef: f64, after_goal: bool| {
+        let cfg = EppoConfig {
+            dense_reward_coef: coef,
+            dense_reward_after_goal: after_goal,
+            ..learner.cfg.clone()
+        };
+        let mut rng = ChaCha8Rng::seed_from_u64(1);
+        to_vec(&unshaped_batch(&[&t], &cfg, &learner.spec, &mut rng).rewards)
+    };
+    let sparse = rewards(0.0, false);
+    let shaping = |r: Vec<f32>| -> Vec<f32> {
+        let scale = learner.cfg.reward_scale as f32;
+        r.iter()
+            .zip(&sparse)
+            .take(4)
+            .map(|(d, s)| (d - s) / scale)
+            .collect()
+    };
+    let always = shaping(rewards(1.0, false));
+    let after_goal = shaping(rewards(1.0, true));
+    let progress = |step: usize| {
+        let d = |o: &[f32]| GoalRule::distance([o[0], o[1]], [4.0, 6.0]);
+        d(&t.obs[step * 2..step * 2 + 2]) - d(&t.next_obs[step * 2..step * 2 + 2])
+    };
+    for step in 0..4 {
+        assert!((always[step] - progress(step)).abs() < 1e-5, "step {step}");
+        let expected = if step < 2 { 0.0 } else { progress(step) };
+        assert!((after_goal[step] - expected).abs() < 1e-5, "step {step}");
+    }
+    assert!(always[0] != 0.0 && after_goal[3] != 0.0);
+    let mut cfg = learner.cfg.clone();
+    cfg.dense_reward_after_goal = true;
+    let e = cfg.validate().unwrap_err().to_string();
+    assert!(e.contains("dense_reward_coef"), "{e}");
+}
+
+#[test]
+fn the_goal_enters_the_context_with_its_reward() {
+    // One fixed task (the ladder's first rung): collect until an episode
+    // ends at the goal, then look at the token after it.
+    let mut cfg = tiny();
+    cfg.task_pool = 1;
+    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+    let goal = sample_task(
+        &spawn_config(EnvName::DarkRoom),
+        Orientation::Centre,
+        pretrain_task_seed(cfg.seed, 0),
+    )
+    .unwrap()
+    .goal;
+    let goal_obs = [goal.row as f32, goal.col as f32];
+    let (_, mut venv) = tiny_learner(0);
+    let mut checked = 0;
+    for _ in 0..300 {
+        learner.collect(&mut venv).unwrap();
+        if learner
+            .replay
+            .trajectories
+            .iter()
+            .any(|t| t.terminated.contains(&true))
+        {
+            break;
+        }
+    }
+    let norm = |x: f32| 2.0 * x / 8.0 - 1.0; // 9x9 grid: [0, 8] -> [-1, 1]
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    for t in &learner.replay.trajectories {
+        let batch = unshaped_batch(&[t], &cfg, &learner.spec, &mut rng);
+        let tok = to_vec(&batch.tokens);
+        let d = learner.spec.token_dim();
+        for s in (0..t.len() - 1).filter(|&s| t.terminated[s]) {
+            assert_eq!(&t.next_obs[2 * s..2 * s + 2], &goal_obs, "step {s}");
+            let next = &tok[(s + 1) * d..(s + 2) * d];
+            // The token carrying reward 1: the new episode's start as the
+            // observation, the goal as where the last action arrived.
+            assert_eq!(next[2..4], [norm(goal_obs[0]), norm(goal_obs[1])]);
+            assert_eq!(next[0..2], [0.0, 0.0], "the centre start");
+            assert_eq!(next[2 + 2 + 5], 10.0, "reward x reward_scale");
+            assert_eq!(next[d - 1], 1.0, "episode start flag");
+            checked += 1;
+        }
+    }
+    // A pool of one: every goal reached above was the same task's.
+    assert!(checked > 0, "no episode reached the goal in 300 rounds");
+}
+
+#[test]
+fn exploration_is_bilevel() {
+    let mut cfg = tiny();
+    cfg.eps_start = 1.0;
+    cfg.eps_end = 0.4;
+    cfg.eps_last_start = Some(0.6);
+    cfg.eps_last_end = Some(0.0);
+    cfg.eps_decay_steps = 1000;
+    let start = cfg.exploration(0);
+    assert_eq!((start.first, start.last), (1.0, 0.6));
+    let mid = cfg.exploration(500);
+    assert!((mid.first - 0.7).abs() < 1e-12 && (mid.last - 0.3).abs() < 1e-12);
+    let end = cfg.exploration(10_000);
+    assert!(
+        (end.first - 0.4).abs() < 1e-12 && end.last == 0.0,
+        "annealed, then held"
+    );
+    // Inside a trajectory: linear from the first to the last step, scaled.
+    assert!((end.at(0, 100, 1.0, false) - 0.4).abs() < 1e-12);
+    assert!((end.at(50, 100, 1.0, false) - 0.2).abs() < 1e-12);
+    assert!(end.at(100, 100, 1.0, false).abs() < 1e-12);
+    assert!((end.at(0, 100, 0.5, false) - 0.2).abs() < 1e-12);
+    // Without the last-step values, epsilon is flat inside a trajectory.
+    cfg.eps_last_start = None;
+    cfg.eps_last_end = None;
+    let flat = cfg.exploration(500);
+    assert_eq!(flat.first, flat.last);
+    // An epsilon outside [0, 1] is refused by name.
+    assert!(cfg.validate().is_ok());
+    cfg.eps_last_end = Some(1.5);
+    assert!(
+        cfg.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("eps_last_end")
+    );
+}
+
+#[test]
+fn noise_drops_to_its_ceiling_once_the_goal_is_found() {
+    let mut cfg = tiny();
+    cfg.eps_start = 0.6;
+    cfg.eps_end = 0.6;
+    cfg.eps_after_success = Some(0.5);
+    let e = cfg.exploration(0);
+    assert_eq!(
+        e.at(0, 100, 1.0, false),
+        0.6,
+        "still searching: the schedule"
+    );
+    assert_eq!(e.at(0, 100, 1.0, true), 0.5, "found: the ceiling");
+    assert_eq!(e.at(0, 100, 0.5, true), 0.3, "a ceiling, not a floor");
+    cfg.eps_after_success = None;
+    assert_eq!(cfg.exploration(0).at(0, 100, 1.0, true), 0.6);
+    cfg.eps_after_success = Some(1.5);
+    assert!(
+        cfg.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("eps_after_success")
+    );
+}
+
+#[test]
+fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
+    let t = cell_walk();
+    assert_eq!(
+        novel_arrivals(&t, 2, 1.0),
+        // new (4,5); seen (4,4); new (3,4); seen (4,5); new (3,5), the goal;
+        // nothing after the first success, new cells included.
+        vec![1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0]
+    );
+    // Coarser cells (side 2) hold (3,4) with (4,4) and (3,5) with (4,5).
+    assert_eq!(
+        novel_arrivals(&t, 2, 2.0),
+        vec![1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
+    );
+    // Into the critics' rewards only, at the weight given; tokens unchanged.
+    let spec = NetSpec {
+        obs_dim: 2,
+        obs_low: vec![0.0; 2],
+        obs_high: vec![8.0; 2],
+        n_actions: Some(5),
+        act_low: vec![],
+        act_high: vec![],
+        ..Default::default()
+    };
+    let cfg = tiny();
+    let batch = |novelty: f32| {
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let shaping = Shaping {
+            novelty,
+            over_budget: None,
+        };
+        make_batch(&[&t], &cfg, &spec, shaping, &mut rng, Device::Cpu)
+    };
+    let (plain, bonus) = (batch(0.0), batch(0.1));
+    assert_eq!(to_vec(&plain.tokens), to_vec(&bonus.tokens));
+    let diff: Vec<f32> = to_vec(&bonus.rewards)
+        .iter()
+        .zip(to_vec(&plain.rewards))
+        .map(|(b, p)| ((b - p) / cfg.reward_scale as f32 * 100.0).round() / 100.0)
+        .collect();
+    assert_eq!(diff, vec![0.1, 0.0, 0.1, 0.0, 0.1, 0.0, 0.0, 0.0]);
+    // Annealed linearly to zero, then held there.
+    let mut cfg = tiny();
+    cfg.novelty_bonus = 0.2;
+    assert_eq!(cfg.novelty_weight(500), 0.2, "no anneal: constant");
+    cfg.novelty_anneal_updates = 1000;
+    assert!((cfg.novelty_weight(500) - 0.1).abs() < 1e-12);
+    assert_eq!(cfg.novelty_weight(1000), 0.0);
+    assert_eq!(cfg.novelty_weight(5000), 0.0);
+}
+
+#[test]
+fn search_rates_count_discovery_and_revisits() {
+    let a = [false, true, true, false];
+    let b = [false, false, false, false];
+    let c = [true, true, false, true];
+    let (disc, rev, found) = search_rates([&a[..], &b[..], &c[..]].into_iter());
+    // After episode 1: a discovers at 2 (1 of a's 1 undiscovered tries),
+    // b never (3 tries); a revisits 1 of 2, c 2 of 3.
+    assert!((disc - 1.0 / 4.0).abs() < 1e-12, "{disc}");
+    assert!((rev - 3.0 / 5.0).abs() < 1e-12, "{rev}");
+    assert!((found - 2.0 / 3.0).abs() < 1e-12);
+    assert!(search_rates([&b[..1]].into_iter()).0.is_nan());
+}
+
+#[test]
+fn episode_positions_count_steps_from_each_start_and_change_the_encoding() {
+    let mut cfg = tiny();
+    let (learner, _) = tiny_learner(0);
+    let d = learner.spec.token_dim() as i64;
+    // Two sequences of 5 steps: starts at 0 and 3, and at 0 only.
+    let tokens = Tensor::zeros([2, 5, d], (Kind::Float, Device::Cpu));
+    for (row, t) in [(0, 0), (0, 3), (1, 0)] {
+        let _ = tokens.get(row).get(t).get(d - 1).fill_(1.0);
+    }
+    assert_eq!(
+        to_vec(&super::net::episode_steps(&tokens)),
+        vec![0.0, 1.0, 2.0, 0.0, 1.0, 0.0, 1.0, 2.0, 3.0, 4.0]
+    );
+    // The same weights with the sinusoid on encode differently.
+    cfg.episode_positions = true;
+    let mut with = Learner::new(cfg, EnvName::DarkRoom).unwrap();
+    with.vs.copy(&learner.vs).unwrap();
+    let (h0, h1) = tch::no_grad(|| {
+        (
+            learner.net.encode(&tokens, false).unwrap(),
+            with.net.encode(&tokens, false).unwrap(),
+        )
+    });
+    assert!(
+        !h1.allclose(&h0, 1e-4, 1e-4, false),
+        "the sinusoid changed nothing"
+    );
+}
+
+#[test]
+fn continuous_exploration_noise_widens_the_sampled_actions_within_the_box() {
+    // Two rows, one action dimension, a near-deterministic policy at 0.5.
+    let spec = NetSpec {
+        obs_dim: 1,
+        act_low: vec![-2.0],
+        act_high: vec![2.0],
+        ..Default::default()
+    };
+    let policy = Policy::Continuous(vec![0.5; 2], vec![-10.0; 2], 1);
+    let draw = |eps: &[f64], greedy: bool, seed: u64| {
+        let mut rng = ChaCha8Rng::seed_from_u64(seed);
+        let (net, env) = sample_actions(&policy, &spec, eps, greedy, &mut rng);
+        let EnvActions::Continuous(env) = env else {
+            panic!("continuous policy, discrete actions")
+        };
+        (net, env)
+    };
+    let spread = |eps: &[f64], row: usize| -> f32 {
+        let xs: Vec<f32> = (0..400).map(|seed| draw(eps, false, seed).0[row]).collect();
+        let mean = xs.iter().sum::<f32>() / xs.len() as f32;
+        (xs.iter().map(|x| (x - mean).powi(2)).sum::<f32>() / xs.len() as f32).sqrt()
+    };
+    // No epsilon: exactly the policy's own sample, as before the noise existed.
+    assert!(spread(&[0.0, 0.0], 0) < 1e-3);
+    assert_eq!(draw(&[], false, 7), draw(&[0.0, 0.0], false, 7));
+    // Epsilon 0.5 on row 0 only: its spread is about 0.5 (less a little for
+    // the clamp); row 1 keeps the policy's.
+    let s0 = spread(&[0.5, 0.0], 0);
+    assert!((0.35..0.55).contains(&s0), "row 0 spread {s0}");
+    assert!(spread(&[0.5, 0.0], 1) < 1e-3);
+    // Large noise stays inside the box: network actions in [-1, 1], the
+    // environment's in [low, high], some of them on the bounds.
+    let (mut hits, mut all_in) = (0, true);
+    for seed in 0..200 {
+        let (net, env) = draw(&[1.0, 1.0], false, seed);
+        all_in &= net.iter().all(|x| (-1.0..=1.0).contains(x));
+        all_in &= env.iter().all(|x| (-2.0..=2.0).contains(x));
+        hits += net.iter().filter(|x| x.abs() == 1.0).count();
+    }
+    assert!(all_in && hits > 0, "clamped onto the bounds {hits} times");
+    // The mode ignores epsilon.
+    let (net, _) = draw(&[1.0, 1.0], true, 0);
+    assert_eq!(net, vec![0.5f32.tanh(); 2]);
+}
+
+/// Standardised observations: the entries without finite bounds are
+/// centred and scaled by a random policy's statistics (the accelerometer's
+/// spread of about 9 comes to 1), the bounded ones keep their [-1, 1] map,
+/// the statistics ride in the checkpoint's spec, and the run is the same
+/// under its seed.
+#[test]
+fn standardised_observations_come_from_a_random_policy_and_stay_fixed() {
+    let mut cfg = EppoConfig {
+        standardise_observations: true,
+        physics_steps_per_action: Some(50),
+        max_episode_steps: 75,
+        ..tiny()
+    };
+    cfg.model.max_len = 150;
+    let learner = Learner::new(cfg.clone(), EnvName::Point).unwrap();
+    let spec = &learner.spec;
+    assert_eq!(spec.obs_mean.len(), 23);
+    spec.check().unwrap();
+    assert!((spec.obs_mean[13] - 9.81).abs() < 0.01, "gravity, constant");
+    assert_eq!(spec.obs_scale[13], 1.0, "a constant entry is only centred");
+    assert!(spec.obs_scale[12] > 3.0, "the accelerometer's spread");
+    let mut obs = vec![0.0f32; 23];
+    obs[12] = spec.obs_mean[12] + spec.obs_scale[12];
+    obs[13] = 9.81;
+    obs[2] = 1.0; // a rotation entry: bounded, mapped to [-1, 1] as before
+    let mut out = Vec::new();
+    spec.normalise_obs(&obs, &mut out);
+    assert!((out[12] - 1.0).abs() < 1e-5 && out[13].abs() < 0.01 && out[2] == 1.0);
+    let again = Learner::new(cfg, EnvName::Point).unwrap();
+    assert_eq!(again.spec, learner.spec, "deterministic under the seed");
+    let plain = Learner::new(tiny(), EnvName::DarkRoom).unwrap();
+    assert!(plain.spec.obs_mean.is_empty(), "off: raw as before");
+}
+
+/// The goal-conditioned rung: every collected observation ends with the
+/// task's goal, and its checkpoint is refused by evaluation by name.
+#[test]
+fn the_goal_conditioned_rung_sees_the_goal_and_is_never_evaluated() {
+    let cfg = EppoConfig {
+        goal_in_observation: true,
+        ..tiny()
+    };
+    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+    assert_eq!(learner.spec.obs_dim, 4, "position and goal");
+    let mut venv = training_venv(EnvName::DarkRoom, &cfg);
+    learner.collect(&mut venv).unwrap();
+    for t in &learner.replay.trajectories {
+        for step in t.obs.chunks(4) {
+            assert_eq!(
+                step[2..],
+                t.goal,
+                "the goal at the end of every observation"
+            );
+        }
+    }
+    let out = std::env::temp_dir().join(format!("icrl-eppo-goal-{}", std::process::id()));
+    let report = train(&PretrainOptions {
+        env: EnvName::DarkRoom,
+        cfg,
+        out: out.clone(),
+        resume: None,
+        progress: false,
+    })
+    .unwrap();
+    let err = EppoAgent::load(&report.last_checkpoint, Device::Cpu)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(err.contains("goal_in_observation"), "{err}");
+    std::fs::remove_dir_all(&out).unwrap();
+}

@@ -1,0 +1,759 @@
+//! The constraint: its measured start, the multiplier (Eq. 7, PID), the
+//! penalty forms (hinge, Saute, the excess price and its schedule) and the
+//! novelty bonus's budget gates.
+
+use super::*;
+
+/// cell_walk with costs: episode 0 pays 1 at step 1 (budget 1: not over)
+/// and 1 at step 2 (over); episode 1 goes over at step 3, then reaches the
+/// goal at step 4; episode 2 never pays.
+fn overspent_walk() -> (Trajectory, NetSpec) {
+    let mut t = cell_walk();
+    t.costs = vec![0.0, 1.0, 1.0, 2.0, 0.0, 0.0, 0.0, 0.0];
+    t.ctg = vec![1.0, 1.0, 0.0, 1.0, -1.0, 1.0, 1.0, 1.0];
+    t.episode_costs = vec![2.0, 2.0, 0.0];
+    let spec = NetSpec {
+        obs_dim: 2,
+        obs_low: vec![0.0; 2],
+        obs_high: vec![8.0; 2],
+        n_actions: Some(5),
+        ..Default::default()
+    };
+    (t, spec)
+}
+
+/// A config whose over-budget price (`form`, 2 per unit of cost) starts at
+/// update 100, the multiplier held at 0; checks nothing is priced before.
+fn priced_from_update_100(form: PenaltyForm) -> EppoConfig {
+    let mut cfg = tiny();
+    cfg.penalty = form;
+    cfg.lambda_lr = 0.0;
+    cfg.lambda_init = 0.0;
+    cfg.lambda_warmup_updates = 100;
+    cfg.over_budget_cost_price = 2.0;
+    let count = ConstraintStart::default();
+    assert_eq!(count.started_at(99, cfg.lambda_warmup_updates, None), None);
+    assert_eq!(
+        count.started_at(100, cfg.lambda_warmup_updates, None),
+        Some(100)
+    );
+    assert_eq!(
+        cfg.shaping(99, None).over_budget,
+        None,
+        "not before the constraint"
+    );
+    cfg
+}
+
+#[test]
+fn a_measured_constraint_start_waits_for_the_warmup_and_the_revisit_rate() {
+    let (warmup, threshold, rounds) = (100, 0.8, 3);
+    let mut start = ConstraintStart::default();
+    let observe = |start: &mut ConstraintStart, rate: f64, updates: u64| {
+        start.observe(rate, updates, warmup, threshold, rounds);
+        start.started_at(updates, warmup, Some(threshold)).is_some()
+    };
+    // Revisiting, but inside the warm-up: off, though the count alone would not say so.
+    for updates in [50, 60, 70] {
+        assert!(!observe(&mut start, 0.9, updates));
+    }
+    assert!(start.started_at(100, warmup, None).is_some());
+    // A round with nothing to revisit (NaN) does not count, either way.
+    let mut low = ConstraintStart::default();
+    for rate in [0.9, 0.9, 0.5, f64::NAN, 0.9] {
+        assert!(!observe(&mut low, rate, 200), "{rate}: mean under 0.8");
+    }
+    assert_eq!(low.recent_revisits, vec![0.9, 0.5, 0.9]);
+    assert!(
+        !observe(&mut low, 0.9, 205),
+        "0.5, 0.9, 0.9: mean under 0.8"
+    );
+    assert!(observe(&mut low, 0.9, 210), "0.9, 0.9, 0.9");
+    assert_eq!(low.since, Some(210));
+    // Past the warm-up the full window starts it, and it stays on.
+    assert!(observe(&mut start, 0.9, 100));
+    assert_eq!(start.since, Some(100));
+    assert!(observe(&mut start, 0.0, 150), "once on, it stays on");
+    assert_eq!(start.since, Some(100));
+}
+
+#[test]
+fn the_multiplier_waits_for_the_measured_start_and_the_checkpoint_keeps_it() {
+    let mut cfg = tiny();
+    cfg.lambda_init = 0.5;
+    cfg.lambda_lr = 0.1;
+    cfg.lambda_max = 10.0;
+    cfg.lambda_warmup_updates = 0;
+    cfg.constraint_after_revisit = Some(0.5);
+    cfg.constraint_revisit_rounds = 1;
+    cfg.validate().unwrap();
+    let (_, mut venv) = tiny_learner(0);
+    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+    learner.collect(&mut venv).unwrap();
+    learner.observe_round(&RoundStats {
+        revisit_rate: 0.4,
+        ..Default::default()
+    });
+    learner.update().unwrap();
+    assert!(!learner.constrained());
+    assert_eq!(learner.multiplier.lambda, 0.5, "held before the start");
+    learner.observe_round(&RoundStats {
+        revisit_rate: 0.6,
+        ..Default::default()
+    });
+    assert!(learner.constrained());
+    assert_eq!(learner.constraint_start.since, Some(1));
+    learner.update().unwrap();
+    assert_ne!(learner.multiplier.lambda, 0.5, "moves once on");
+    let out = std::env::temp_dir().join(format!("icrl-eppo-start-{}", std::process::id()));
+    let run = crate::checkpoint::RunDir::create(&out, "darkroom", "eppo", cfg.seed).unwrap();
+    let saved = learner.save_checkpoint(&run).unwrap();
+    let resumed = Learner::resume(cfg, EnvName::DarkRoom, &saved).unwrap();
+    assert_eq!(resumed.constraint_start, learner.constraint_start);
+    assert!(resumed.constrained());
+    std::fs::remove_dir_all(&out).unwrap();
+    for (key, value, says) in [
+        (
+            "constraint_after_revisit",
+            "1.5",
+            "constraint_after_revisit = 1.5",
+        ),
+        (
+            "constraint_revisit_rounds",
+            "0",
+            "constraint_revisit_rounds = 0",
+        ),
+    ] {
+        let mut table = crate::presets::preset_table("eppo", "darkroom", "quick").unwrap();
+        crate::presets::apply_overrides(&mut table, &[format!("{key}={value}")]).unwrap();
+        let cfg: EppoConfig = crate::presets::resolve("bad", table).unwrap();
+        let err = cfg.validate().unwrap_err().to_string();
+        assert!(err.contains(says), "{err}");
+    }
+}
+
+#[test]
+fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
+    let (t, spec) = overspent_walk();
+    let mut cfg = priced_from_update_100(PenaltyForm::Saute);
+    cfg.saute_unsafe_reward = -0.25;
+    cfg.validate().unwrap();
+    assert_eq!(
+        cfg.shaping(100, Some(100)).over_budget,
+        Some(OverBudget {
+            replaced_reward: Some(-0.25),
+            cost_price: 2.0,
+            pays_novelty: false
+        })
+    );
+    let over_budget = |reward: f32, cost_price: f32| Shaping {
+        novelty: 0.0,
+        over_budget: Some(OverBudget {
+            replaced_reward: Some(reward),
+            cost_price,
+            pays_novelty: false,
+        }),
+    };
+    let batch = |shaping: Shaping| {
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        make_batch(&[&t], &cfg, &spec, shaping, &mut rng, Device::Cpu)
+    };
+    let (plain, saute) = (batch(Shaping::default()), batch(over_budget(-0.25, 0.0)));
+    assert_eq!(
+        to_vec(&plain.tokens),
+        to_vec(&saute.tokens),
+        "tokens as collected"
+    );
+    let scale = cfg.reward_scale as f32;
+    let unscaled =
+        |b: &Batch| -> Vec<f32> { to_vec(&b.rewards).iter().map(|r| r / scale).collect() };
+    assert_eq!(
+        unscaled(&plain),
+        vec![0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
+    );
+    assert_eq!(
+        unscaled(&saute),
+        // at the budget is within it; past it, every step of the episode,
+        // the goal's too; the next episode starts clean.
+        vec![0.0, 0.0, -0.25, -0.25, -0.25, 0.0, 0.0, 0.0]
+    );
+    // With a price on cost, each unit paid past the budget costs it too.
+    assert_eq!(
+        unscaled(&batch(over_budget(-0.25, 2.0))),
+        vec![0.0, 0.0, -2.25, -4.25, -0.25, 0.0, 0.0, 0.0]
+    );
+    // Under another penalty form the same settings shape nothing.
+    cfg.penalty = PenaltyForm::Hindsight;
+    assert_eq!(cfg.shaping(100, Some(100)).over_budget, None);
+    // The actor pays no lambda term: the price is in the reward.
+    let qc = Tensor::from_slice(&[0.5f32, 2.0]).view([1, 2]);
+    let ones = qc.ones_like();
+    assert_eq!(
+        to_vec(&penalised_cost(
+            &qc,
+            &ones,
+            &(ones.zeros_like() - 5.0),
+            PenaltyForm::Saute
+        )),
+        vec![0.0, 0.0]
+    );
+}
+
+#[test]
+fn saute_refuses_a_multiplier_that_moves() {
+    let mut cfg = tiny();
+    cfg.penalty = PenaltyForm::Saute;
+    cfg.lambda_init = 0.0;
+    cfg.lambda_lr = 0.001;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(err.contains("lambda_lr = 0"), "{err}");
+    cfg.lambda_lr = 0.0;
+    cfg.saute_unsafe_reward = 0.5;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(err.contains("saute_unsafe_reward"), "{err}");
+    cfg.saute_unsafe_reward = -0.1;
+    cfg.over_budget_cost_price = -1.0;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(err.contains("over_budget_cost_price"), "{err}");
+    cfg.over_budget_cost_price = 1.0;
+    cfg.validate().unwrap();
+}
+
+#[test]
+fn excess_price_charges_each_unit_past_the_budget_and_keeps_the_goal() {
+    let (t, spec) = overspent_walk();
+    let mut cfg = priced_from_update_100(PenaltyForm::Excess);
+    cfg.validate().unwrap();
+    let shaping = cfg.shaping(100, Some(100));
+    assert_eq!(
+        shaping.over_budget,
+        Some(OverBudget {
+            replaced_reward: None,
+            cost_price: 2.0,
+            pays_novelty: true
+        })
+    );
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let batch = make_batch(&[&t], &cfg, &spec, shaping, &mut rng, Device::Cpu);
+    let scale = cfg.reward_scale as f32;
+    let rewards: Vec<f32> = to_vec(&batch.rewards).iter().map(|r| r / scale).collect();
+    assert_eq!(
+        rewards,
+        // within the budget nothing is charged; past it each unit costs the
+        // price and the goal still pays; the next episode starts clean.
+        vec![0.0, 0.0, -2.0, -4.0, 1.0, 0.0, 0.0, 0.0]
+    );
+    assert_eq!(
+        to_vec(&batch.costs),
+        t.costs,
+        "the cost critic's targets are the costs as paid"
+    );
+    // No actor penalty: the price is in the reward.
+    let qc = Tensor::from_slice(&[0.5f32, 2.0]).view([1, 2]);
+    let ones = qc.ones_like();
+    assert_eq!(
+        to_vec(&penalised_cost(
+            &qc,
+            &ones,
+            &ones.zeros_like(),
+            PenaltyForm::Excess
+        )),
+        vec![0.0, 0.0]
+    );
+    // Refused without a price, or with a multiplier that moves.
+    cfg.over_budget_cost_price = 0.0;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(err.contains("over_budget_cost_price > 0"), "{err}");
+    cfg.over_budget_cost_price = 1.0;
+    cfg.lambda_lr = 0.01;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(
+        err.contains("penalty = \"excess\"") && err.contains("lambda_lr = 0"),
+        "{err}"
+    );
+}
+
+#[test]
+fn the_price_schedule_counts_updates_from_the_constraints_start() {
+    let (t, spec) = overspent_walk();
+    let mut cfg = priced_from_update_100(PenaltyForm::Excess);
+    let mut table = crate::presets::preset_table("eppo", "darkroom", "quick").unwrap();
+    let schedule =
+        "over_budget_price_schedule=[{ after = 50, price = 3.0 }, { after = 80, price = 5 }]";
+    crate::presets::apply_overrides(&mut table, &[schedule.to_string()]).unwrap();
+    let parsed: EppoConfig = crate::presets::resolve("schedule", table).unwrap();
+    cfg.over_budget_price_schedule = parsed.over_budget_price_schedule;
+    assert_eq!(
+        cfg.over_budget_price_schedule,
+        vec![
+            PriceChange {
+                after: 50,
+                price: 3.0
+            },
+            PriceChange {
+                after: 80,
+                price: 5.0
+            }
+        ]
+    );
+    cfg.validate().unwrap();
+    let price_at = |updates: u64, since: Option<u64>| {
+        cfg.shaping(updates, since)
+            .over_budget
+            .map(|o| o.cost_price)
+    };
+    assert_eq!(price_at(99, None), None, "nothing before the start");
+    for (updates, since, price) in [
+        (100, 100, 2.0),
+        (149, 100, 2.0),
+        (150, 100, 3.0),
+        (179, 100, 3.0),
+        (180, 100, 5.0),
+        (5000, 100, 5.0),
+        // From a measured start, not from update 0 or the warm-up.
+        (190, 140, 3.0),
+        (180, 131, 2.0),
+    ] {
+        assert_eq!(
+            price_at(updates, Some(since)),
+            Some(price),
+            "{updates} since {since}"
+        );
+    }
+    // The critics' rewards carry it: the walk's 1 and 2 units past the budget.
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let batch = make_batch(
+        &[&t],
+        &cfg,
+        &spec,
+        cfg.shaping(180, Some(100)),
+        &mut rng,
+        Device::Cpu,
+    );
+    let scale = cfg.reward_scale as f32;
+    let rewards: Vec<f32> = to_vec(&batch.rewards).iter().map(|r| r / scale).collect();
+    assert_eq!(rewards, vec![0.0, 0.0, -5.0, -10.0, 1.0, 0.0, 0.0, 0.0]);
+    // The learner reads it from its measured start and reports it.
+    cfg.constraint_after_revisit = Some(0.5);
+    cfg.constraint_revisit_rounds = 1;
+    cfg.lambda_warmup_updates = 0;
+    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+    assert_eq!(
+        learner.over_budget_price(),
+        0.0,
+        "not charged before the start"
+    );
+    learner.updates = 10;
+    learner.observe_round(&RoundStats {
+        revisit_rate: 0.9,
+        ..Default::default()
+    });
+    assert_eq!(learner.constraint_since(), Some(10));
+    assert_eq!(learner.over_budget_price(), 2.0);
+    learner.updates = 60;
+    assert_eq!(learner.over_budget_price(), 3.0);
+    learner.updates = 90;
+    assert_eq!(learner.over_budget_price(), 5.0);
+    // Refused where it would charge nothing or be read out of order.
+    let refused = |change: &dyn Fn(&mut EppoConfig), says: &str| {
+        let mut bad = cfg.clone();
+        change(&mut bad);
+        let err = bad.validate().unwrap_err().to_string();
+        assert!(err.contains(says), "{err}");
+    };
+    refused(
+        &|c| c.over_budget_price_schedule.reverse(),
+        "must rise from one change to the next",
+    );
+    refused(
+        &|c| c.over_budget_price_schedule[1].price = f64::NAN,
+        "price = NaN after 80 updates",
+    );
+    refused(
+        &|c| {
+            c.penalty = PenaltyForm::Hinge;
+            c.over_budget_cost_price = 0.0;
+        },
+        "over_budget_price_schedule changes the price",
+    );
+    refused(
+        &|c| {
+            c.over_budget_price_ramp = true;
+            c.over_budget_price_schedule.clear();
+        },
+        "over_budget_price_ramp = true moves the price",
+    );
+}
+
+#[test]
+fn the_price_ramp_moves_linearly_from_the_start_price_through_each_change() {
+    let mut cfg = priced_from_update_100(PenaltyForm::Excess);
+    cfg.over_budget_price_schedule = vec![
+        PriceChange {
+            after: 50,
+            price: 3.0,
+        },
+        PriceChange {
+            after: 80,
+            price: 6.0,
+        },
+    ];
+    cfg.over_budget_price_ramp = true;
+    cfg.validate().unwrap();
+    let price_at = |updates: u64| {
+        cfg.shaping(updates, Some(100))
+            .over_budget
+            .map(|o| o.cost_price)
+    };
+    // 2.0 at the start, 3.0 at 50 updates past it, 6.0 at 80 and after.
+    for (updates, price) in [
+        (100, 2.0),
+        (125, 2.5),
+        (149, 2.98),
+        (150, 3.0),
+        (160, 4.0),
+        (170, 5.0),
+        (180, 6.0),
+        (5000, 6.0),
+    ] {
+        let got = price_at(updates).unwrap();
+        assert!((got - price).abs() < 1e-6, "{updates}: {got} != {price}");
+    }
+    // A change at the start itself is a step, as without the ramp.
+    cfg.over_budget_price_schedule[0].after = 0;
+    assert_eq!(cfg.over_budget_price(0), 3.0);
+    assert!((cfg.over_budget_price(40) - 4.5).abs() < 1e-9);
+    // Without the ramp the same schedule steps.
+    cfg.over_budget_price_ramp = false;
+    assert_eq!(cfg.over_budget_price(79), 3.0);
+}
+
+#[test]
+fn novelty_within_budget_withholds_the_bonus_only_past_the_budget() {
+    let (t, spec) = overspent_walk();
+    let rewards_at = |updates: u64, within: bool| {
+        let mut cfg = priced_from_update_100(PenaltyForm::Excess);
+        cfg.novelty_bonus = 0.1;
+        if within {
+            cfg.novelty_budget = NoveltyBudget::WithinBudget;
+        }
+        cfg.validate().unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let shaping = cfg.shaping(
+            updates,
+            (updates >= cfg.lambda_warmup_updates).then_some(100),
+        );
+        let batch = make_batch(&[&t], &cfg, &spec, shaping, &mut rng, Device::Cpu);
+        let scale = cfg.reward_scale as f32;
+        to_vec(&batch.rewards)
+            .iter()
+            .map(|r| (r / scale * 100.0).round() / 100.0)
+            .collect::<Vec<f32>>()
+    };
+    // New cells at steps 0, 2 and 4; the budget is spent at steps 2-4.
+    assert_eq!(
+        rewards_at(100, false),
+        vec![0.1, 0.0, -1.9, -4.0, 1.1, 0.0, 0.0, 0.0]
+    );
+    assert_eq!(
+        rewards_at(100, true),
+        vec![0.1, 0.0, -2.0, -4.0, 1.0, 0.0, 0.0, 0.0],
+        "the bonus is paid within the budget and withheld past it"
+    );
+    assert_eq!(
+        rewards_at(99, true),
+        vec![0.1, 0.0, 0.1, 0.0, 1.1, 0.0, 0.0, 0.0],
+        "before the constraint nothing is priced and the bonus is paid"
+    );
+    // Refused where it would do nothing.
+    let mut cfg = priced_from_update_100(PenaltyForm::Excess);
+    cfg.novelty_budget = NoveltyBudget::WithinBudget;
+    cfg.novelty_bonus = 0.0;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(err.contains("novelty_budget"), "{err}");
+    cfg.novelty_bonus = 0.1;
+    cfg.penalty = PenaltyForm::Hindsight;
+    cfg.over_budget_cost_price = 0.0;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(err.contains("penalty = \"excess\""), "{err}");
+}
+
+#[test]
+fn novelty_by_remaining_share_scales_the_bonus_by_the_budget_left() {
+    let (mut t, spec) = overspent_walk();
+    // Budget 2: 2 left at steps 0-1, 1 at step 2 (after a cost of 1), a new
+    // episode at step 3 spends all of it, so none is left at step 4.
+    t.budget = 2.0;
+    t.ctg = vec![2.0, 2.0, 1.0, 2.0, 0.0, 2.0, 2.0, 2.0];
+    let rewards_at = |t: &Trajectory, updates: u64, form: NoveltyBudget| {
+        let mut cfg = priced_from_update_100(PenaltyForm::Excess);
+        cfg.novelty_bonus = 0.1;
+        cfg.novelty_budget = form;
+        cfg.validate().unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let batch = make_batch(
+            &[t],
+            &cfg,
+            &spec,
+            cfg.shaping(
+                updates,
+                (updates >= cfg.lambda_warmup_updates).then_some(100),
+            ),
+            &mut rng,
+            Device::Cpu,
+        );
+        let scale = cfg.reward_scale as f32;
+        to_vec(&batch.rewards)
+            .iter()
+            .map(|r| (r / scale * 1000.0).round() / 1000.0)
+            .collect::<Vec<f32>>()
+    };
+    // New cells at steps 0, 2 and 4, with all, half and none of the budget left.
+    for updates in [99, 100] {
+        assert_eq!(
+            rewards_at(&t, updates, NoveltyBudget::RemainingShare),
+            vec![0.1, 0.0, 0.05, 0.0, 1.0, 0.0, 0.0, 0.0],
+            "update {updates}"
+        );
+    }
+    assert_eq!(
+        rewards_at(&t, 100, NoveltyBudget::Always),
+        vec![0.1, 0.0, 0.1, 0.0, 1.1, 0.0, 0.0, 0.0],
+        "ungated, the full bonus at every new cell"
+    );
+    // A larger share than the whole budget (none here) or an overspent one
+    // is clamped: a budget of 1 leaves a negative CTG at step 4.
+    t.budget = 1.0;
+    t.ctg = vec![1.0, 1.0, 0.0, 1.0, -1.0, 1.0, 1.0, 1.0];
+    assert_eq!(
+        rewards_at(&t, 99, NoveltyBudget::RemainingShare),
+        vec![0.1, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
+    );
+    let mut cfg = priced_from_update_100(PenaltyForm::Hindsight);
+    cfg.novelty_budget = NoveltyBudget::RemainingShare;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(err.contains("novelty_bonus > 0"), "{err}");
+}
+
+#[test]
+fn an_older_novelty_within_budget_flag_reads_as_the_gate() {
+    let text = toml::to_string(&tiny()).unwrap();
+    assert!(text.contains("novelty_budget = \"always\""), "{text}");
+    let read = |line: &str| {
+        toml::from_str::<EppoConfig>(&text.replace("novelty_budget = \"always\"", line))
+            .unwrap()
+            .novelty_budget
+    };
+    assert_eq!(
+        read("novelty_within_budget = true"),
+        NoveltyBudget::WithinBudget
+    );
+    assert_eq!(read("novelty_within_budget = false"), NoveltyBudget::Always);
+    assert_eq!(
+        read("novelty_budget = \"remaining_share\""),
+        NoveltyBudget::RemainingShare
+    );
+}
+
+#[test]
+fn the_pid_multiplier_is_eq_7_without_its_p_and_d_terms_and_damps_with_them() {
+    let integrator = Gains {
+        ki: 0.1,
+        kp: 0.0,
+        kd: 0.0,
+        smoothing: 0.9,
+        max: 1.5,
+    };
+    let batches: Vec<Vec<f32>> = (0..60)
+        .map(|i| {
+            if i < 30 {
+                vec![3.0, -1.0]
+            } else {
+                vec![-2.0, -0.5]
+            }
+        })
+        .collect();
+    let (mut m, mut lambda) = (Multiplier::new(0.2), 0.2);
+    for b in &batches {
+        m.update(b, &integrator);
+        lambda = lambda_update(lambda, b, 0.1, 1.5);
+        assert_eq!(m.lambda, lambda, "Eq. (7) exactly");
+    }
+    // With P and D: lambda answers a violation at once, above the integral,
+    // and falls below it as soon as the cost is under budget.
+    let pid = Gains {
+        kp: 0.5,
+        kd: 1.0,
+        ..integrator
+    };
+    let mut m = Multiplier::new(0.0);
+    m.update(&[1.0], &pid);
+    assert!(m.lambda > m.integral, "{m:?}");
+    assert!((m.integral - 0.1).abs() < 1e-12);
+    // kp e + kd rise, e = 0.1 after one step from 0.
+    assert!(
+        (m.lambda - (0.1 + 0.5 * 0.1 + 1.0 * 0.1)).abs() < 1e-9,
+        "{m:?}"
+    );
+    for _ in 0..20 {
+        m.update(&[1.0], &pid);
+    }
+    assert!(m.lambda <= 1.5, "capped: {m:?}");
+    let before = m;
+    // The smoothed violation turns negative after three batches under budget.
+    for _ in 0..3 {
+        m.update(&[-3.0], &pid);
+    }
+    assert!(m.smoothed < 0.0, "{m:?}");
+    assert!(m.lambda < m.integral, "damped below the integral: {m:?}");
+    assert!(m.integral < before.integral);
+    m.update(&[], &pid);
+    assert!(m.lambda >= 0.0);
+}
+
+#[test]
+fn lambda_rises_falls_and_respects_the_cap() {
+    let mut lambda = 0.0;
+    let mut seen = vec![];
+    for _ in 0..50 {
+        lambda = lambda_update(lambda, &[3.0, -1.0, 4.0], 0.1, 1.5);
+        seen.push(lambda);
+    }
+    assert!(
+        seen.windows(2).take(5).all(|w| w[1] > w[0]),
+        "rises while costs exceed the budget"
+    );
+    assert_eq!(lambda, 1.5, "capped");
+    assert!(seen.iter().all(|&l| l <= 1.5));
+    for _ in 0..50 {
+        lambda = lambda_update(lambda, &[-2.0, -0.5], 0.1, 1.5);
+    }
+    assert_eq!(
+        lambda, 0.0,
+        "falls back to 0 once every episode is within budget"
+    );
+    // Eq. (7) takes the worst episode of each trajectory, then the mean.
+    let t = Trajectory {
+        budget: 2.0,
+        episode_costs: vec![1.0, 5.0, 0.0],
+        ..Default::default()
+    };
+    assert_eq!(t.max_violation(), 3.0);
+}
+
+/// The late-rate signal counts only episodes k > K/2 and subtracts its
+/// target, so blind early episodes cannot hold lambda up, and a trajectory
+/// whose later episodes keep the budget pulls lambda down.
+#[test]
+fn late_rate_signal_ignores_the_blind_first_half() {
+    let t = Trajectory {
+        budget: 2.0,
+        episode_costs: vec![9.0, 9.0, 0.0, 3.0],
+        ..Default::default()
+    };
+    assert_eq!(t.late_over_budget_rate(), 0.5, "episode 4 of 3..4 over");
+    assert_eq!(t.violation(ViolationSignal::WorstExcess, 0.05), 7.0);
+    assert!((t.violation(ViolationSignal::LateRate, 0.05) - 0.45).abs() < 1e-6);
+    let kept = Trajectory {
+        budget: 2.0,
+        episode_costs: vec![9.0, 9.0, 9.0, 2.0, 1.0, 0.0],
+        ..Default::default()
+    };
+    assert!((kept.violation(ViolationSignal::LateRate, 0.05) + 0.05).abs() < 1e-6);
+    let mut m = Multiplier::new(0.5);
+    let gains = Gains {
+        ki: 0.1,
+        kp: 0.0,
+        kd: 0.0,
+        smoothing: 0.9,
+        max: 1.0,
+    };
+    m.update(&[kept.violation(ViolationSignal::LateRate, 0.05)], &gains);
+    assert!(m.lambda < 0.5, "falls while later episodes keep the budget");
+    assert!(kept.max_violation() > 0.0, "where Eq. (7) would still rise");
+}
+
+/// A batch collected by a tiny SafeDarkRoom learner whose actor pays the
+/// cost penalty in `form`.
+fn penalty_probe(form: PenaltyForm) -> (Learner, Batch) {
+    let (mut learner, mut venv) = tiny_learner(2);
+    learner.cfg.penalty = form;
+    learner.collect(&mut venv).unwrap();
+    let batch = replay_batch(&learner);
+    (learner, batch)
+}
+
+/// Lp on `batch` with multiplier `lambda`, the same libtorch draws each call.
+fn policy_loss_at(learner: &Learner, batch: &Batch, lambda: f64) -> f64 {
+    let (_, _, lp, ..) = crate::torch_rng::seeded(0, || {
+        losses(
+            &learner.net,
+            &learner.target,
+            batch,
+            lambda,
+            learner.cfg.entropy_coef,
+            &learner.cfg,
+        )
+    })
+    .unwrap();
+    lp.double_value(&[])
+}
+
+#[test]
+fn violation_flag_gates_the_cost_penalty() {
+    let (learner, mut batch) = penalty_probe(PenaltyForm::Hindsight);
+    let policy_loss = |batch: &Batch, lambda: f64| policy_loss_at(&learner, batch, lambda);
+    batch.violated = batch.valid.zeros_like();
+    let (clean_0, clean_5) = (policy_loss(&batch, 0.0), policy_loss(&batch, 5.0));
+    assert!(
+        (clean_0 - clean_5).abs() < 1e-4,
+        "no violation: lambda has no effect"
+    );
+    batch.violated = batch.valid.ones_like();
+    let (viol_0, viol_5) = (policy_loss(&batch, 0.0), policy_loss(&batch, 5.0));
+    assert!((viol_0 - clean_0).abs() < 1e-4);
+    assert!(
+        (viol_5 - viol_0).abs() > 1e-4,
+        "violated episodes pay lambda * Qc"
+    );
+}
+
+#[test]
+fn the_hinge_charges_predicted_cost_past_the_remaining_budget_only() {
+    let row = |v: &[f32]| Tensor::from_slice(v).view([1, v.len() as i64]);
+    let qc = row(&[0.5, 2.0, 3.0, 1.0]);
+    let ctg = row(&[1.0, 1.0, 1.0, 0.0]);
+    let violated = row(&[1.0, 0.0, 0.0, 1.0]);
+    assert_eq!(
+        to_vec(&penalised_cost(&qc, &violated, &ctg, PenaltyForm::Hinge)),
+        vec![0.0, 1.0, 2.0, 1.0],
+        "zero within the budget, growing past it, blind to the flag"
+    );
+    assert_eq!(
+        to_vec(&penalised_cost(
+            &qc,
+            &violated,
+            &ctg,
+            PenaltyForm::Hindsight
+        )),
+        vec![0.5, 0.0, 0.0, 1.0],
+        "Algorithm 1: Qc where the episode ended over budget"
+    );
+    // Through the whole actor loss: with the hinge, lambda bites only when
+    // the cost critic predicts more than the remaining budget.
+    let (learner, mut batch) = penalty_probe(PenaltyForm::Hinge);
+    let policy_loss = |batch: &Batch, lambda: f64| policy_loss_at(&learner, batch, lambda);
+    batch.ctg = batch.valid.ones_like() * 1e6;
+    let (rich_0, rich_5) = (policy_loss(&batch, 0.0), policy_loss(&batch, 5.0));
+    assert!((rich_0 - rich_5).abs() < 1e-4, "ample budget: no penalty");
+    batch.violated = batch.valid.ones_like();
+    assert!(
+        (policy_loss(&batch, 5.0) - rich_5).abs() < 1e-4,
+        "the hindsight flag plays no part"
+    );
+    batch.ctg = batch.valid.ones_like() * -1e3;
+    assert!(
+        (policy_loss(&batch, 5.0) - rich_0).abs() > 1e-4,
+        "a spent budget: every predicted cost is charged"
+    );
+}

@@ -1,0 +1,360 @@
+//! Whole runs: acting through the cache against the full forward,
+//! determinism, checkpoints and resumes, the overlapped loop.
+
+use super::*;
+
+/// A checkpoint holds the replay, so the update after a resume is the one
+/// the uninterrupted run makes (discrete and continuous actions); one
+/// copied without it is refused as incomplete.
+#[test]
+fn a_resumed_learner_samples_the_saved_replay_and_updates_as_the_uninterrupted_one() {
+    for (env, cfg) in [(EnvName::DarkRoom, tiny()), (EnvName::Point, tiny_point())] {
+        let mut learner = Learner::new(cfg.clone(), env).unwrap();
+        let mut venv = training_venv(env, &cfg);
+        learner.collect(&mut venv).unwrap();
+        learner.collect(&mut venv).unwrap();
+        learner.update().unwrap();
+        let out = std::env::temp_dir().join(format!(
+            "icrl-eppo-replay-{}-{}",
+            env.as_str(),
+            std::process::id()
+        ));
+        let run = crate::checkpoint::RunDir::create(&out, env.as_str(), "eppo", cfg.seed).unwrap();
+        let saved = learner.save_checkpoint(&run).unwrap();
+        let mut resumed = Learner::resume(cfg.clone(), env, &saved).unwrap();
+        assert_eq!(resumed.replay.len(), 2 * cfg.n_envs, "{env:?}");
+        assert_eq!(resumed.replay.steps(), learner.replay.steps());
+        assert!(
+            resumed
+                .replay
+                .trajectories
+                .iter()
+                .eq(learner.replay.trajectories.iter()),
+            "{env:?}: every field of every trajectory"
+        );
+        let (next, after_resume) = (learner.update().unwrap(), resumed.update().unwrap());
+        for (name, a, b) in [
+            ("value", next.value_loss, after_resume.value_loss),
+            (
+                "cost value",
+                next.cost_value_loss,
+                after_resume.cost_value_loss,
+            ),
+            ("policy", next.policy_loss, after_resume.policy_loss),
+            ("q", next.q_mean, after_resume.q_mean),
+        ] {
+            assert_eq!(a, b, "{env:?}: the {name} after a resume");
+        }
+        std::fs::remove_file(saved.join(super::checkpoint::REPLAY_FILE)).unwrap();
+        let bare = Learner::resume(cfg, env, &saved);
+        std::fs::remove_dir_all(&out).unwrap();
+        // The manifest lists the replay's file, so a checkpoint copied
+        // without it is refused as incomplete rather than resumed quietly.
+        let err = bare.err().map(|e| e.to_string()).unwrap_or_default();
+        assert!(err.contains("replay.safetensors"), "{env:?}: {err}");
+    }
+}
+
+#[test]
+fn acting_through_the_cache_matches_the_full_forward() {
+    let (mut learner, mut venv) = tiny_learner(3);
+    acting_matches_the_full_forward(&mut learner, &mut venv);
+}
+
+#[test]
+fn acting_with_episode_positions_matches_the_full_forward() {
+    let mut cfg = tiny();
+    cfg.seed = 3;
+    cfg.episode_positions = true;
+    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+    let mut venv = training_venv(EnvName::DarkRoom, &cfg);
+    acting_matches_the_full_forward(&mut learner, &mut venv);
+}
+
+/// Steps one collected trajectory through the KV cache and compares each
+/// step's policy with the whole trajectory's forward.
+fn acting_matches_the_full_forward(learner: &mut Learner, venv: &mut VecEnv) {
+    learner.collect(venv).unwrap();
+    let t = learner.replay.trajectories[0].clone();
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let batch = unshaped_batch(&[&t], &learner.cfg, &learner.spec, &mut rng);
+    let full = tch::no_grad(|| {
+        learner
+            .net
+            .actor
+            .forward(&learner.net.encode(&batch.tokens, false).unwrap())
+    })
+    .softmax(-1, Kind::Float); // (1, T, A)
+    let mut acting = Acting::new(&learner.net, &learner.spec, &learner.cfg, &[t.budget]);
+    let (od, a) = (learner.spec.obs_dim, learner.spec.act_flat());
+    for s in 0..t.len() {
+        let zeros = vec![0f32; a];
+        let (prev, r, c) = if s == 0 {
+            (&zeros[..], 0.0, 0.0)
+        } else {
+            (
+                &t.actions[(s - 1) * a..s * a],
+                t.rewards[s - 1],
+                t.costs[s - 1],
+            )
+        };
+        let zeros_o = vec![0f32; od];
+        let arrived = if s == 0 {
+            &zeros_o[..]
+        } else {
+            &t.next_obs[(s - 1) * od..s * od]
+        };
+        let input = StepInput {
+            obs: &t.obs[s * od..(s + 1) * od],
+            arrived_obs: arrived,
+            prev_action: prev,
+            reward: &[r],
+            cost: &[c],
+            episode_start: &[t.start[s]],
+        };
+        assert_eq!(acting.observe(&input), vec![t.ctg[s]]);
+        let Policy::Discrete(p, _) = acting.policy(&learner.net, &input).unwrap() else {
+            panic!()
+        };
+        let expected = to_vec(&full.narrow(1, s as i64, 1));
+        for (x, y) in p.iter().zip(&expected) {
+            assert!((x - y).abs() < 1e-5, "step {s}: {p:?} vs {expected:?}");
+        }
+    }
+}
+
+#[test]
+fn same_seed_same_run_on_cpu() {
+    let run = |seed| {
+        let (mut learner, mut venv) = tiny_learner(seed);
+        let mut out = vec![];
+        for _ in 0..2 {
+            let r = learner.collect(&mut venv).unwrap();
+            out.push(r.mean_cost);
+            let u = learner.update().unwrap();
+            out.extend([u.value_loss, u.cost_value_loss, u.policy_loss, u.lambda]);
+        }
+        let w = learner.vs.variables()["transformer.h.0.attn.c_attn.weight"]
+            .sum(Kind::Float)
+            .double_value(&[]);
+        out.push(w);
+        out
+    };
+    assert_eq!(run(5), run(5));
+    assert_ne!(run(5), run(6));
+}
+
+#[test]
+fn pretrain_end_to_end_checkpoints_resumes_and_loads() {
+    let out = std::env::temp_dir().join(format!("icrl-eppo-e2e-{}", std::process::id()));
+    let opts = PretrainOptions {
+        env: EnvName::DarkRoom,
+        cfg: tiny(),
+        out: out.clone(),
+        resume: None,
+        progress: false,
+    };
+    let report = train(&opts).unwrap();
+    assert_eq!(report.updates, 4);
+    assert!(report.last_checkpoint.ends_with("step_4"));
+    let lines = std::fs::read_to_string(report.run_dir.join("metrics.jsonl")).unwrap();
+    let first: serde_json::Value = serde_json::from_str(lines.lines().next().unwrap()).unwrap();
+    for key in [
+        "env_steps",
+        "episodic_return",
+        "episodic_cost",
+        "lambda",
+        "losses/value_loss",
+    ] {
+        assert!(first.get(key).is_some(), "{key}");
+    }
+    // Resume to 6 updates from the run folder.
+    let mut cfg = tiny();
+    cfg.total_updates = 6;
+    let resumed = train(&PretrainOptions {
+        cfg,
+        resume: Some(report.run_dir.clone()),
+        ..opts.clone()
+    })
+    .unwrap();
+    assert_eq!(
+        (resumed.updates, resumed.run_dir.clone()),
+        (6, report.run_dir.clone())
+    );
+    assert!(resumed.env_steps > report.env_steps);
+    // An incompatible config is refused with the manifest named.
+    let mut other = tiny();
+    other.model.n_layers = 2;
+    let err = train(&PretrainOptions {
+        cfg: other,
+        resume: Some(report.run_dir.clone()),
+        ..opts.clone()
+    })
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(
+        err.contains("manifest.json") && err.contains("model"),
+        "{err}"
+    );
+    // A truncated weight file is refused with its name.
+    let ckpt = report.run_dir.join("checkpoints/step_6");
+    let w = ckpt.join("model.safetensors");
+    let bytes = std::fs::read(&w).unwrap();
+    let mut agent = EppoAgent::load(&ckpt, Device::Cpu).unwrap();
+    std::fs::write(&w, &bytes[..bytes.len() / 2]).unwrap();
+    let err = EppoAgent::load(&ckpt, Device::Cpu)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(err.contains("model.safetensors"), "{err}");
+    // The frozen agent acts for two trajectories at once.
+    agent
+        .reset(&[
+            Conditioning::Budget { ctg: 3.0 },
+            Conditioning::Budget { ctg: 9.0 },
+        ])
+        .unwrap();
+    let input = StepInput {
+        obs: &[4.0, 4.0, 4.0, 4.0],
+        arrived_obs: &[0.0; 4],
+        prev_action: &[0.0; 10],
+        reward: &[0.0; 2],
+        cost: &[0.0; 2],
+        episode_start: &[true; 2],
+    };
+    let Actions::Discrete(a) = agent.act(&input, true).unwrap() else {
+        panic!()
+    };
+    assert!(a.len() == 2 && a.iter().all(|&x| x < 5));
+    assert!(
+        agent
+            .act(
+                &StepInput {
+                    obs: &[0.0; 2],
+                    ..input
+                },
+                false
+            )
+            .is_err()
+    );
+    std::fs::remove_dir_all(&out).unwrap();
+}
+
+/// An overlapped run's metrics and final weights, less what depends on the
+/// machine's speed (rates, phase times, CPU shares).
+fn overlapped_run(seed: u64, out: &std::path::Path) -> (Vec<serde_json::Value>, Vec<u8>) {
+    let mut cfg = tiny();
+    cfg.seed = seed;
+    cfg.overlap = true;
+    cfg.total_updates = 8;
+    let report = train(&PretrainOptions {
+        env: EnvName::DarkRoom,
+        cfg,
+        out: out.to_path_buf(),
+        resume: None,
+        progress: false,
+    })
+    .unwrap();
+    assert_eq!(report.updates, 8);
+    let records = std::fs::read_to_string(report.run_dir.join("metrics.jsonl"))
+        .unwrap()
+        .lines()
+        .map(|l| {
+            let mut v: serde_json::Value = serde_json::from_str(l).unwrap();
+            v.as_object_mut().unwrap().retain(|k, _| {
+                !(k.starts_with("time/") || k.starts_with("charts/cpu") || k.ends_with("_per_s"))
+            });
+            v
+        })
+        .collect();
+    let weights = std::fs::read(report.last_checkpoint.join("model.safetensors")).unwrap();
+    (records, weights)
+}
+
+#[test]
+fn the_overlapped_loop_is_deterministic_and_keeps_the_replay_ratio() {
+    tch::set_num_threads(1);
+    let out = std::env::temp_dir().join(format!("icrl-eppo-overlap-{}", std::process::id()));
+    let (a, wa) = overlapped_run(3, &out);
+    let (b, wb) = overlapped_run(3, &out);
+    assert_eq!(a, b, "same seed, same metrics, whichever thread was faster");
+    assert!(wa == wb, "same seed, same weights");
+    let (c, _) = overlapped_run(4, &out);
+    assert_ne!(a, c);
+    // updates_per_round = 2 after every round (learning_starts = 0): the
+    // ratio of the synchronous loop, one record per round.
+    let updates: Vec<u64> = a.iter().map(|r| r["updates"].as_u64().unwrap()).collect();
+    assert_eq!(updates, vec![2, 4, 6, 8]);
+    let steps: Vec<u64> = a.iter().map(|r| r["env_steps"].as_u64().unwrap()).collect();
+    assert!(steps.windows(2).all(|w| w[1] > w[0]), "{steps:?}");
+    std::fs::remove_dir_all(&out).unwrap();
+}
+
+#[test]
+fn the_replay_ratio_sets_updates_per_environment_step() {
+    let (mut learner, mut venv) = tiny_learner(0);
+    learner.cfg.replay_ratio = Some(0.1);
+    learner.cfg.total_updates = 1000;
+    learner.cfg.learning_starts = 5;
+    for _ in 0..3 {
+        learner.collect(&mut venv).unwrap();
+        let owed = learner.updates_owed();
+        let expected = (0.1 * (learner.env_steps - 5) as f64).floor() as u64 - learner.updates;
+        assert_eq!(owed, expected);
+        for _ in 0..owed {
+            learner.update().unwrap();
+        }
+    }
+    assert_eq!(
+        learner.updates,
+        (0.1 * (learner.env_steps - 5) as f64).floor() as u64
+    );
+    // Without it: updates_per_round, none before learning_starts, none past the end.
+    learner.cfg.replay_ratio = None;
+    assert_eq!(learner.updates_owed(), 2);
+    learner.cfg.learning_starts = learner.env_steps + 1;
+    assert_eq!(learner.updates_owed(), 0);
+    learner.cfg.learning_starts = 0;
+    learner.cfg.total_updates = learner.updates + 1;
+    assert_eq!(learner.updates_owed(), 1);
+    let mut bad = tiny();
+    bad.replay_ratio = Some(0.0);
+    assert!(
+        bad.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("replay_ratio = 0")
+    );
+    let mut bad = tiny();
+    bad.learner_threads = -1;
+    assert!(
+        bad.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("learner_threads = -1")
+    );
+}
+
+/// A stop while both sides run: the learner stops after its current update,
+/// the actor abandons its round, the checkpoint is written, and the run
+/// resumes (overlapped) to its end without a repeated record.
+#[test]
+fn an_overlapped_stop_checkpoints_and_resumes() {
+    tch::set_num_threads(1);
+    let out = std::env::temp_dir().join(format!("icrl-eppo-overlap-stop-{}", std::process::id()));
+    let cfg = EppoConfig {
+        overlap: true,
+        total_updates: 6,
+        checkpoint_every: 100,
+        ..tiny()
+    };
+    let (done, updates) = stop_after_one_then_resume(&cfg, &out);
+    assert_eq!(done, 6);
+    assert_eq!(
+        updates,
+        vec![1, 3, 5, 6],
+        "one record per round, none repeated"
+    );
+    std::fs::remove_dir_all(&out).unwrap();
+}
