@@ -14,7 +14,7 @@ use safety_envs::{EnvName, Orientation, VecAction, VecEnv, sample_task, spawn_co
 use super::Learner;
 use super::config::{EppoConfig, EppoError};
 use super::net::{EppoNet, NetSpec};
-use super::replay::{Trajectory, push_token};
+use super::replay::{Trajectory, novel_arrivals, push_token};
 use super::timing::PhaseTimes;
 use crate::agent::StepInput;
 use crate::model::KvCache;
@@ -37,6 +37,9 @@ pub struct RoundStats {
     pub discovery_rate: f64,
     pub revisit_rate: f64,
     pub found: f64,
+    /// Cells first entered per episode after the first, over the episodes
+    /// that start with the goal not yet found ([`new_cells_while_searching`]).
+    pub search_new_cells: f64,
     /// Continuous actions: mean |a| of the collected actions (in [-1, 1])
     /// and the fraction with |a| > 0.99; NaN for discrete actions.
     pub action_abs: f64,
@@ -75,6 +78,41 @@ pub fn search_rates<'a>(successes: impl Iterator<Item = &'a [bool]>) -> (f64, f6
     (rate(disc, disc_n), rate(rev, rev_n), rate(found, n))
 }
 
+/// The mean number of cells (side `cell`, on the position at observation
+/// indices 0 and 1) first entered in an episode after the first, over the
+/// episodes that start with the goal not yet found in the trajectory; NaN
+/// with no such episode. About 0 for an agent that drives the same route in
+/// every episode, a goal off that route never found; higher for one that
+/// searches elsewhere after a miss.
+pub(super) fn new_cells_while_searching(trajs: &[Trajectory], obs_dim: usize, cell: f64) -> f64 {
+    let (mut cells, mut episodes) = (0.0, 0usize);
+    for t in trajs {
+        // Whether episode k starts with the goal not yet found.
+        let searching: Vec<bool> = t
+            .episode_success
+            .iter()
+            .scan(false, |found, &hit| {
+                let before = *found;
+                *found |= hit;
+                Some(!before)
+            })
+            .collect();
+        episodes += searching.iter().skip(1).filter(|&&s| s).count();
+        // Arrivals stop at the first success, so episodes after it add nothing.
+        for (step, novel) in novel_arrivals(t, obs_dim, cell).into_iter().enumerate() {
+            let k = t.episode[step] as usize;
+            if k > 0 && searching.get(k).copied().unwrap_or(false) {
+                cells += f64::from(novel);
+            }
+        }
+    }
+    if episodes == 0 {
+        f64::NAN
+    } else {
+        cells / episodes as f64
+    }
+}
+
 pub(super) fn mean(xs: impl Iterator<Item = f64>) -> f64 {
     let (s, n) = xs.fold((0.0, 0usize), |(s, n), x| (s + x, n + 1));
     if n == 0 { 0.0 } else { s / n as f64 }
@@ -84,7 +122,8 @@ pub(super) fn mean(xs: impl Iterator<Item = f64>) -> f64 {
 type RoundDraws = (Vec<f32>, Vec<usize>, Vec<f64>);
 
 /// What a round of `steps` environment steps gathered in `trajs`.
-fn round_stats(trajs: &[Trajectory], steps: u64, discrete: bool) -> RoundStats {
+fn round_stats(trajs: &[Trajectory], steps: u64, spec: &NetSpec, cell: f64) -> RoundStats {
+    let discrete = spec.n_actions.is_some();
     let (discovery_rate, revisit_rate, found) =
         search_rates(trajs.iter().map(|t| t.episode_success.as_slice()));
     let (action_abs, action_saturated) = if discrete {
@@ -106,6 +145,7 @@ fn round_stats(trajs: &[Trajectory], steps: u64, discrete: bool) -> RoundStats {
         discovery_rate,
         revisit_rate,
         found,
+        search_new_cells: new_cells_while_searching(trajs, spec.obs_dim, cell),
         trajectories: trajs.len(),
         steps,
         mean_return: mean(
@@ -316,7 +356,7 @@ impl Collector<'_> {
             }
         }
         *self.env_steps += steps;
-        let stats = round_stats(&trajs, steps, self.spec.n_actions.is_some());
+        let stats = round_stats(&trajs, steps, self.spec, self.cfg.novelty_cell);
         Ok((trajs, stats))
     }
 

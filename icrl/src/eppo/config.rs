@@ -270,7 +270,8 @@ pub struct EppoConfig {
     #[serde(default)]
     pub novelty_bonus: f64,
     /// Side of a novelty cell in observation units (the position at
-    /// observation indices 0 and 1): 1 is one SafeDarkRoom cell.
+    /// observation indices 0 and 1): 1 is one SafeDarkRoom cell. Also the
+    /// cell of the `search_new_cells` metric.
     #[serde(default = "default_novelty_cell")]
     pub novelty_cell: f64,
     /// Updates over which `novelty_bonus` anneals linearly to 0 (0: constant).

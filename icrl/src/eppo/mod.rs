@@ -102,7 +102,10 @@
 //! `first_episode_cost`, `last_episode_cost` (per trajectory, averaged: the
 //! in-context signal), `discovery_rate` and `revisit_rate` (P(goal at episode
 //! k > 1 | not found / found earlier in the trajectory)), `found_goal`
-//! (fraction of trajectories that found it), `lambda`, `constrained`
+//! (fraction of trajectories that found it), `search_new_cells` (cells of
+//! side `novelty_cell` first entered per episode after the first, over the
+//! episodes that start with the goal not found: near 0 when every episode
+//! drives the same route), `lambda`, `constrained`
 //! (whether the constraint acted in the round), `over_budget_price` (the
 //! excess price charged, 0 when none is), `entropy_coef`,
 //! `losses/value_loss`, `losses/cost_value_loss`, `losses/policy_loss`, `losses/entropy`, `losses/grad_norm`,
@@ -769,6 +772,7 @@ fn round_record(
         "discovery_rate": round.discovery_rate,
         "revisit_rate": round.revisit_rate,
         "found_goal": round.found,
+        "search_new_cells": round.search_new_cells,
         "lambda": learner.multiplier.lambda,
         "constrained": learner.constrained(),
         "over_budget_price": learner.over_budget_price(),

@@ -391,6 +391,38 @@ fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
 }
 
 #[test]
+fn new_cells_while_searching_counts_cells_first_entered_after_a_miss() {
+    // cell_walk: episode 1 starts unfound and enters one new cell, (3,5),
+    // the goal; episode 2 comes after the success and is not counted.
+    assert_eq!(new_cells_while_searching(&[cell_walk()], 2, 1.0), 1.0);
+    // Without the success, episode 2 searches too and enters (5,4), (3,3).
+    let mut missed = cell_walk();
+    missed.rewards = vec![0.0; missed.len()];
+    missed.terminated = vec![false; missed.len()];
+    missed.truncated = vec![false, false, true, false, true, false, false, true];
+    missed.episode_success = vec![false; 3];
+    assert_eq!(new_cells_while_searching(&[missed.clone()], 2, 1.0), 1.5);
+    // Episode 2 driving cells seen before adds nothing: the fixed route.
+    let mut same_route = missed.clone();
+    for (step, cell) in [(5, [4.0, 5.0]), (6, [4.0, 4.0]), (7, [3.0, 4.0])] {
+        same_route.next_obs[step * 2..step * 2 + 2].copy_from_slice(&cell);
+    }
+    assert_eq!(
+        new_cells_while_searching(&[same_route.clone()], 2, 1.0),
+        0.5
+    );
+    // Pooled over trajectories: (1 + 2 + 1 + 0) cells over 4 episodes.
+    assert_eq!(
+        new_cells_while_searching(&[missed, same_route], 2, 1.0),
+        1.0
+    );
+    // Found in the first episode: no episode searches.
+    let mut found_first = cell_walk();
+    found_first.episode_success = vec![true, true, false];
+    assert!(new_cells_while_searching(&[found_first], 2, 1.0).is_nan());
+}
+
+#[test]
 fn search_rates_count_discovery_and_revisits() {
     let a = [false, true, true, false];
     let b = [false, false, false, false];

@@ -165,6 +165,8 @@ fn pretrain_end_to_end_checkpoints_resumes_and_loads() {
         "episodic_cost",
         "lambda",
         "losses/value_loss",
+        "revisit_rate",
+        "search_new_cells",
     ] {
         assert!(first.get(key).is_some(), "{key}");
     }
