@@ -7,8 +7,8 @@ import json
 import sys
 
 summary = json.load(open(sys.argv[1]))["summary"]["per_episode"]
-keys = ["ret", "cost", "revisit", "discovery", "found_by"]
-print("k  " + "  ".join(f"{k:>9}" for k in keys))
+keys = ["ret", "cost", "revisit", "discovery", "found_by", "search_new_cells"]
+print("k  " + "  ".join(f"{k[:9]:>9}" for k in keys))
 for k, row in enumerate(summary, start=1):
     cells = []
     for key in keys:

@@ -125,6 +125,7 @@ pub fn check(checkpoint: &Path, env: EnvName) -> Result<String, EvalCmdError> {
         record: None,
         torch_seed: Some(SEED),
         orientation: Orientation::Edge,
+        search_cell: crate::eval::search_cell(env),
     };
     let spawn = spawn_config(env);
     let trained = evaluate(agent.agent.as_mut(), &make, &spawn, &cfg, &mut |_| {})?;

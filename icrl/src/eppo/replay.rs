@@ -384,15 +384,19 @@ fn dense_reward(t: &Trajectory, step: usize, spec: &NetSpec, cfg: &EppoConfig) -
     cfg.dense_reward_coef as f32 * progress
 }
 
+/// The cell (side `side`) of the position at observation indices 0 and 1,
+/// the one the novelty bonus and the search metrics count.
+pub(crate) fn position_cell(obs: &[f32], side: f64) -> (i64, i64) {
+    let at = |x: f32| (f64::from(x) / side).round() as i64;
+    (at(obs[0]), at(obs[1]))
+}
+
 /// For each step of `t`, 1 where it arrives in a cell (side `cell`, on the
 /// position at observation indices 0 and 1) that the trajectory has not been
 /// in before, episode starts included, up to its first success; 0 elsewhere
 /// and after it. The novelty bonus's indicator ([`EppoConfig::novelty_bonus`]).
 pub(super) fn novel_arrivals(t: &Trajectory, obs_dim: usize, cell: f64) -> Vec<f32> {
-    let key = |o: &[f32]| {
-        let at = |x: f32| (f64::from(x) / cell).round() as i64;
-        (at(o[0]), at(o[1]))
-    };
+    let key = |o: &[f32]| position_cell(o, cell);
     let mut seen = HashSet::new();
     let mut novel = vec![0f32; t.len()];
     for (step, flag) in novel.iter_mut().enumerate() {

@@ -24,6 +24,11 @@
 //! - The step input at an episode start inside a trajectory carries the last
 //!   action, reward and cost of the previous episode (zeros only at the very
 //!   first step), with `episode_start` set: the agent restarts its CTG there.
+//! - The search itself, beside its outcome (discovery, revisit, found by
+//!   k): the cells (side [`search_cell`]) a trajectory first enters in each
+//!   episode, averaged over the conditions with no earlier success
+//!   (`search_new_cells`). An agent that drives one route in every episode
+//!   scores near 0 after the first, however many goals it misses.
 //! - Trajectories that finished their K episodes keep being fed (their
 //!   actions ignored) until the batch's longest one ends; no trajectory sees
 //!   more than `K x t_max` steps.
@@ -40,12 +45,13 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use safety_envs::vec_env::{VecAction, VecEnv, episode_seed};
 use safety_envs::{
-    CmdpEnv, EnvError, Orientation, Space, SpawnConfig, StepOutcome, Task, sample_task,
+    CmdpEnv, EnvError, EnvName, Orientation, Space, SpawnConfig, StepOutcome, Task, sample_task,
 };
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::agent::{Actions, AgentError, Conditioning, InContextAgent, StepInput};
+use crate::eppo::position_cell;
 use crate::task_seeds::{self, PretrainTasks, SeedError};
 
 pub use report::{
@@ -114,6 +120,18 @@ pub struct EvalConfig {
     /// evaluation; [`Orientation::Centre`] (the pretraining distribution, on
     /// unseen seeds) is a diagnostic only.
     pub orientation: Orientation,
+    /// Side of the cells that `new_cells` counts, in the units of the
+    /// position at observation indices 0 and 1 ([`search_cell`]).
+    pub search_cell: f64,
+}
+
+/// The cell side the search metrics use in `env`: one SafeDarkRoom cell, the
+/// spacing of the robots' task grid (0.75 m).
+pub fn search_cell(env: EnvName) -> f64 {
+    match env {
+        EnvName::DarkRoom => 1.0,
+        EnvName::Point | EnvName::Car => safety_envs::nav::NavConfig::default().spacing(),
+    }
 }
 
 impl EvalConfig {
@@ -297,6 +315,7 @@ pub fn evaluate(
         costs: vec![vec![Vec::with_capacity(k_n); nt]; nc],
         lengths: vec![vec![Vec::with_capacity(k_n); nt]; nc],
         reached_goal: vec![vec![Vec::with_capacity(k_n); nt]; nc],
+        new_cells: vec![vec![Vec::with_capacity(k_n); nt]; nc],
         recording: None,
     };
 
@@ -341,6 +360,8 @@ struct RowState {
     ret: f32,
     cost: f32,
     len: u32,
+    /// Cells first entered in this episode, of the trajectory's `visited`.
+    new_cells: u32,
 }
 
 #[allow(clippy::too_many_arguments)]
@@ -362,6 +383,7 @@ fn run_batch(
         start_batch(agent, venv, tasks, cfg, rows, live, obs_dim)?;
 
     let mut state = vec![RowState::default(); b];
+    let mut visited = vec![HashSet::new(); b];
     let mut prev_action = vec![0.0f32; b * act_dim];
     let mut reward = vec![0.0f32; b];
     let mut cost = vec![0.0f32; b];
@@ -393,6 +415,9 @@ fn run_batch(
             cost: &cost,
             episode_start: &start,
         };
+        for (i, seen) in visited.iter_mut().enumerate() {
+            seen.insert(position_cell(&obs[i * obs_dim..], cfg.search_cell));
+        }
         let actions = agent.act(&input, cfg.greedy)?;
         let outcomes = step_envs(venv, &actions, act_space, &mut discrete, &mut continuous)?;
 
@@ -442,12 +467,15 @@ fn run_batch(
             s.ret += o.reward;
             s.cost += o.cost;
             s.len += 1;
+            let cell = position_cell(&arrived[i * obs_dim..], cfg.search_cell);
+            s.new_cells += u32::from(visited[i].insert(cell));
             if o.done() {
                 let (c, t) = (rows[i] / nt, rows[i] % nt);
                 result.returns[c][t].push(s.ret);
                 result.costs[c][t].push(s.cost);
                 result.lengths[c][t].push(s.len);
                 result.reached_goal[c][t].push(o.terminated);
+                result.new_cells[c][t].push(s.new_cells);
                 *s = RowState {
                     done: s.done + 1,
                     ..Default::default()
@@ -705,6 +733,7 @@ mod tests {
             record: Some((1, 2)),
             torch_seed: None,
             orientation: Orientation::Edge,
+            search_cell: 1.0,
         }
     }
 
@@ -864,6 +893,21 @@ mod tests {
                 assert_eq!((o.reward, o.cost), (ep.rewards[i], ep.costs[i]));
             }
         }
+        // Cells first entered per episode: the recorded positions not seen
+        // earlier in the trajectory, episode starts included.
+        let mut seen = HashSet::new();
+        for (k, ep) in rec.episodes.iter().enumerate() {
+            seen.insert(position_cell(&ep.observations[0], 1.0));
+            let fresh = ep.observations[1..]
+                .iter()
+                .filter(|o| seen.insert(position_cell(o, 1.0)))
+                .count();
+            assert_eq!(fresh as u32, r.new_cells[1][2][k], "episode {k}");
+        }
+        assert!(
+            r.new_cells[1][2].iter().sum::<u32>() > 0,
+            "a random walk enters new cells"
+        );
     }
 
     #[test]
@@ -1040,6 +1084,10 @@ mod tests {
                 vec![vec![false, true], vec![true, true], vec![false, false]],
                 vec![vec![false, true], vec![true, true], vec![true, true]],
             ],
+            new_cells: vec![
+                vec![vec![3, 2], vec![4, 0], vec![5, 1]],
+                vec![vec![1, 6], vec![2, 0], vec![7, 0]],
+            ],
             recording: None,
         }
     }
@@ -1071,6 +1119,23 @@ mod tests {
         assert_eq!(e2.revisit.n, 2);
         close(e2.found_by.mean, 2.5 / 3.0);
         close(e1.found_by.mean, 0.5);
+        // New cells while searching: episode 1 counts every condition (tasks
+        // 2, 3, 6); episode 2 only those without a success in episode 1:
+        // task 0's two (2, 6), task 2's first (1); task 1 has none.
+        close(e1.search_new_cells.mean, 11.0 / 3.0);
+        close(e2.search_new_cells.mean, 2.5);
+        assert_eq!(e2.search_new_cells.n, 2);
+        // Older result files have no cell counts: undefined, not zero.
+        let older = EvalResult {
+            new_cells: vec![],
+            ..fake_result()
+        };
+        assert!(
+            older.summary().per_episode[1]
+                .search_new_cells
+                .mean
+                .is_nan()
+        );
         // Episode 2: returns 1, 1, 0.5; costs 0, 0, 3.
         close(s.per_episode[1].ret.mean, 2.5 / 3.0);
         close(s.per_episode[1].cost.mean, 1.0);

@@ -106,6 +106,11 @@ pub struct EvalResult {
     pub lengths: Vec<Vec<Vec<u32>>>,
     /// The episode ended at the goal (terminated), same layout.
     pub reached_goal: Vec<Vec<Vec<bool>>>,
+    /// Cells (side [`EvalConfig::search_cell`](super::EvalConfig)) the
+    /// trajectory first entered in the episode, same layout; empty in older
+    /// result files.
+    #[serde(default)]
+    pub new_cells: Vec<Vec<Vec<u32>>>,
     pub recording: Option<Recording>,
 }
 
@@ -131,6 +136,12 @@ pub struct EpisodeStats {
     /// Fraction of conditions that reached the goal in some episode 1..=k.
     #[serde(default = "MeanSe::undefined")]
     pub found_by: MeanSe,
+    /// Cells first entered in episode k by the conditions of each task with
+    /// no earlier success, as [`EpisodeStats::discovery`] counts them: near 0
+    /// when the agent drives one route in every episode and a goal off it is
+    /// never found. Undefined in older result files.
+    #[serde(default = "MeanSe::undefined")]
+    pub search_new_cells: MeanSe,
 }
 
 /// Budget-sweep statistics of one condition, over tasks.
@@ -225,6 +236,25 @@ impl EvalResult {
             .collect()
     }
 
+    /// Per task, the mean over the conditions with no success before
+    /// episode k of the cells first entered in episode k; tasks without such
+    /// a condition, and results without cell counts, give none.
+    fn cells_entered_while_searching(&self, k: usize) -> Vec<f64> {
+        if self.new_cells.is_empty() {
+            return vec![];
+        }
+        (0..self.n_tasks())
+            .filter_map(|t| {
+                let (cells, n) = (0..self.conditions.len())
+                    .filter(|&c| !self.reached_goal[c][t][..k].contains(&true))
+                    .fold((0u32, 0usize), |(s, n), c| {
+                        (s + self.new_cells[c][t][k], n + 1)
+                    });
+                (n > 0).then(|| f64::from(cells) / n as f64)
+            })
+            .collect()
+    }
+
     /// Curves, sweep and trend (see the module documentation for the averaging).
     pub fn summary(&self) -> Summary {
         let k_n = self.episodes;
@@ -244,6 +274,7 @@ impl EvalResult {
                 found_by: ms(&self.per_task_over_conditions(k, |c, t, k| {
                     f64::from(u8::from(self.reached_goal[c][t][..=k].contains(&true)))
                 })),
+                search_new_cells: ms(&self.cells_entered_while_searching(k)),
             })
             .collect();
         let per_condition = self
