@@ -3,9 +3,10 @@
 //! training summary. 16 edge-oriented tasks (the held-out distribution), 3
 //! budgets across the pretraining range, as many episodes as the context
 //! holds (at most 20), frozen parameters; the agent and a uniformly random
-//! policy on the same tasks and budgets. Per episode index k: return, cost
-//! and the revisit rate P(goal at k | goal found before k). About a minute
-//! on Car with the quick preset.
+//! policy on the same tasks and budgets. Per episode index k: return, cost,
+//! the revisit rate P(goal at k | goal found before k) and the search (cells,
+//! 0.75 m on the robots, first entered in episode k by the trajectories that
+//! have not found the goal yet). About a minute on Car with the quick preset.
 
 use std::fmt::Write as _;
 use std::path::Path;
@@ -26,39 +27,51 @@ const MAX_EPISODES: usize = 20;
 /// The check's evaluation seed: fixed, so reruns compare.
 const SEED: u64 = 20_261_201;
 
-/// Per episode index: mean return, mean cost, revisit rate (NaN where no
-/// trajectory had found the goal before k).
+/// Per episode index: mean return, mean cost, revisit rate, and the cells
+/// first entered by the trajectories still searching (each NaN where no
+/// trajectory had found the goal before k, or none was still searching).
 #[derive(Clone, Debug, PartialEq)]
 pub struct PerEpisode {
     pub ret: Vec<f64>,
     pub cost: Vec<f64>,
     pub revisit: Vec<f64>,
+    pub search_new_cells: Vec<f64>,
 }
 
 impl PerEpisode {
     /// Averages over every (condition, task) trajectory of `r`.
     pub fn of(r: &EvalResult) -> Self {
-        Self::from_parts(r.episodes, &r.returns, &r.costs, &r.reached_goal)
+        Self::from_parts(
+            r.episodes,
+            &r.returns,
+            &r.costs,
+            &r.reached_goal,
+            &r.new_cells,
+        )
     }
 
-    /// The same from `[condition][task][episode]` returns, costs and goals.
+    /// The same from `[condition][task][episode]` returns, costs, goals and
+    /// cells first entered.
     pub fn from_parts(
         k_n: usize,
         returns: &[Vec<Vec<f32>>],
         costs: &[Vec<Vec<f32>>],
         reached_goal: &[Vec<Vec<bool>>],
+        new_cells: &[Vec<Vec<u32>>],
     ) -> Self {
         let trajectories = || {
             returns
                 .iter()
                 .zip(costs)
                 .zip(reached_goal)
-                .flat_map(|((ret, cost), goal)| ret.iter().zip(cost).zip(goal))
+                .zip(new_cells)
+                .flat_map(|(((ret, cost), goal), cells)| ret.iter().zip(cost).zip(goal).zip(cells))
         };
         let (mut ret, mut cost) = (vec![0.0; k_n], vec![0.0; k_n]);
         let (mut revisits, mut found_before) = (vec![0usize; k_n], vec![0usize; k_n]);
+        let (mut cells, mut searching) = (vec![0u32; k_n], vec![0usize; k_n]);
         let mut n = 0usize;
-        for ((rets, costs), goals) in trajectories() {
+        for (((rets, costs), goals), entered) in trajectories() {
             n += 1;
             let mut seen = false;
             for k in 0..k_n {
@@ -67,24 +80,23 @@ impl PerEpisode {
                 if seen {
                     found_before[k] += 1;
                     revisits[k] += usize::from(goals[k]);
+                } else {
+                    searching[k] += 1;
+                    cells[k] += entered[k];
                 }
                 seen |= goals[k];
             }
         }
         let n = n.max(1) as f64;
+        let ratio = |a: f64, b: usize| if b == 0 { f64::NAN } else { a / b as f64 };
         PerEpisode {
             ret: ret.iter().map(|x| x / n).collect(),
             cost: cost.iter().map(|x| x / n).collect(),
-            revisit: revisits
-                .iter()
-                .zip(&found_before)
-                .map(|(&r, &f)| {
-                    if f == 0 {
-                        f64::NAN
-                    } else {
-                        r as f64 / f as f64
-                    }
-                })
+            revisit: (0..k_n)
+                .map(|k| ratio(revisits[k] as f64, found_before[k]))
+                .collect(),
+            search_new_cells: (0..k_n)
+                .map(|k| ratio(f64::from(cells[k]), searching[k]))
                 .collect(),
         }
     }
@@ -148,7 +160,10 @@ fn table(agent: &PerEpisode, random: &PerEpisode, budgets: &[f32]) -> String {
         budgets.join(", "),
         agent.ret.len()
     );
-    let _ = writeln!(s, "   k  return          cost            revisit");
+    let _ = writeln!(
+        s,
+        "   k  return          cost            revisit       new cells while searching"
+    );
     let rate = |x: f64| {
         if x.is_nan() {
             "   -".to_string()
@@ -156,10 +171,17 @@ fn table(agent: &PerEpisode, random: &PerEpisode, budgets: &[f32]) -> String {
             format!("{x:.2}")
         }
     };
+    let cells = |x: f64| {
+        if x.is_nan() {
+            "   -".to_string()
+        } else {
+            format!("{x:>4.1}")
+        }
+    };
     for k in 0..agent.ret.len() {
         let _ = writeln!(
             s,
-            "  {:>2}  {:.3} ({:.3})   {:>5.2} ({:>5.2})   {} ({})",
+            "  {:>2}  {:.3} ({:.3})   {:>5.2} ({:>5.2})   {} ({})   {} ({})",
             k + 1,
             agent.ret[k],
             random.ret[k],
@@ -167,6 +189,8 @@ fn table(agent: &PerEpisode, random: &PerEpisode, budgets: &[f32]) -> String {
             random.cost[k],
             rate(agent.revisit[k]),
             rate(random.revisit[k]),
+            cells(agent.search_new_cells[k]),
+            cells(random.search_new_cells[k]),
         );
     }
     s
@@ -184,10 +208,14 @@ mod tests {
             &[vec![vec![1.0, 0.0, 1.0], vec![0.0, 0.0, 0.0]]],
             &[vec![vec![2.0, 1.0, 0.0], vec![4.0, 3.0, 2.0]]],
             &[vec![vec![true, false, true], vec![false, false, false]]],
+            &[vec![vec![5, 1, 0], vec![7, 3, 0]]],
         );
         assert_eq!(p.ret, [0.5, 0.0, 0.5]);
         assert_eq!(p.cost, [3.0, 2.0, 1.0]);
         assert!(p.revisit[0].is_nan(), "nothing found before k = 1");
         assert_eq!(&p.revisit[1..], [0.0, 1.0]);
+        // New cells over the trajectories still searching: both at k = 1,
+        // only the second after (the first found its goal at k = 1).
+        assert_eq!(p.search_new_cells, [6.0, 3.0, 0.0]);
     }
 }
