@@ -164,18 +164,11 @@ fn table(agent: &PerEpisode, random: &PerEpisode, budgets: &[f32]) -> String {
         s,
         "   k  return          cost            revisit       new cells while searching"
     );
-    let rate = |x: f64| {
+    let shown = |x: f64, decimals: usize| {
         if x.is_nan() {
             "   -".to_string()
         } else {
-            format!("{x:.2}")
-        }
-    };
-    let cells = |x: f64| {
-        if x.is_nan() {
-            "   -".to_string()
-        } else {
-            format!("{x:>4.1}")
+            format!("{x:>4.decimals$}")
         }
     };
     for k in 0..agent.ret.len() {
@@ -187,10 +180,10 @@ fn table(agent: &PerEpisode, random: &PerEpisode, budgets: &[f32]) -> String {
             random.ret[k],
             agent.cost[k],
             random.cost[k],
-            rate(agent.revisit[k]),
-            rate(random.revisit[k]),
-            cells(agent.search_new_cells[k]),
-            cells(random.search_new_cells[k]),
+            shown(agent.revisit[k], 2),
+            shown(random.revisit[k], 2),
+            shown(agent.search_new_cells[k], 1),
+            shown(random.search_new_cells[k], 1),
         );
     }
     s

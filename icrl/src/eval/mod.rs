@@ -415,7 +415,8 @@ fn run_batch(
             cost: &cost,
             episode_start: &start,
         };
-        for (i, seen) in visited.iter_mut().enumerate() {
+        // Every later position is an arrival, counted below.
+        for (i, seen) in visited.iter_mut().enumerate().filter(|&(i, _)| start[i]) {
             seen.insert(position_cell(&obs[i * obs_dim..], cfg.search_cell));
         }
         let actions = agent.act(&input, cfg.greedy)?;

@@ -220,39 +220,41 @@ impl EvalResult {
             .collect()
     }
 
-    /// Per task, the fraction of conditions reaching the goal at episode k
-    /// among those that had (`found_before`) or had not reached it earlier;
+    /// Per task, the mean of `f(condition, task)` over the conditions that
+    /// had (`found_before`) or had not reached the goal before episode k;
     /// tasks without such a condition are skipped.
-    fn conditional_success(&self, k: usize, found_before: bool) -> Vec<f64> {
+    fn per_task_given_found_before(
+        &self,
+        k: usize,
+        found_before: bool,
+        f: impl Fn(usize, usize) -> f64,
+    ) -> Vec<f64> {
         (0..self.n_tasks())
             .filter_map(|t| {
-                let (hits, n) = (0..self.conditions.len())
+                let (sum, n) = (0..self.conditions.len())
                     .filter(|&c| self.reached_goal[c][t][..k].contains(&true) == found_before)
-                    .fold((0usize, 0usize), |(h, n), c| {
-                        (h + usize::from(self.reached_goal[c][t][k]), n + 1)
-                    });
-                (n > 0).then(|| hits as f64 / n as f64)
+                    .fold((0.0, 0usize), |(s, n), c| (s + f(c, t), n + 1));
+                (n > 0).then(|| sum / n as f64)
             })
             .collect()
     }
 
+    /// Per task, the fraction of conditions reaching the goal at episode k
+    /// among those that had (`found_before`) or had not reached it earlier.
+    fn conditional_success(&self, k: usize, found_before: bool) -> Vec<f64> {
+        self.per_task_given_found_before(k, found_before, |c, t| {
+            f64::from(u8::from(self.reached_goal[c][t][k]))
+        })
+    }
+
     /// Per task, the mean over the conditions with no success before
-    /// episode k of the cells first entered in episode k; tasks without such
-    /// a condition, and results without cell counts, give none.
+    /// episode k of the cells first entered in episode k; results without
+    /// cell counts (older files) give none.
     fn cells_entered_while_searching(&self, k: usize) -> Vec<f64> {
         if self.new_cells.is_empty() {
             return vec![];
         }
-        (0..self.n_tasks())
-            .filter_map(|t| {
-                let (cells, n) = (0..self.conditions.len())
-                    .filter(|&c| !self.reached_goal[c][t][..k].contains(&true))
-                    .fold((0u32, 0usize), |(s, n), c| {
-                        (s + self.new_cells[c][t][k], n + 1)
-                    });
-                (n > 0).then(|| f64::from(cells) / n as f64)
-            })
-            .collect()
+        self.per_task_given_found_before(k, false, |c, t| f64::from(self.new_cells[c][t][k]))
     }
 
     /// Curves, sweep and trend (see the module documentation for the averaging).
