@@ -277,6 +277,13 @@ pub struct EppoConfig {
     /// Updates over which `novelty_bonus` anneals linearly to 0 (0: constant).
     #[serde(default)]
     pub novelty_anneal_updates: u64,
+    /// The bonus rises with the episode index k (from 0) of the arrival:
+    /// `novelty_bonus x (1 + novelty_rise x k)`. Late in a search the goal
+    /// is more likely to lie in ground not yet covered, which centre-oriented
+    /// pretraining goals, found in the first few episodes, rarely teach;
+    /// held-out search stopped after episode 6-7 (issues 18, 19). 0: flat.
+    #[serde(default)]
+    pub novelty_rise: f64,
     /// How the episode's budget gates the novelty bonus (issue 18). Paid
     /// everywhere, the bonus let search ignore the budget
     /// (results/eppo_darkroom_budget, ex4). Older configs'
@@ -597,6 +604,7 @@ impl EppoConfig {
             ),
             ("novelty_bonus", self.novelty_bonus, Range::NON_NEGATIVE),
             ("novelty_cell", self.novelty_cell, Range::POSITIVE),
+            ("novelty_rise", self.novelty_rise, Range::NON_NEGATIVE),
             ("scripted_share", self.scripted_share, Range::UNIT),
             (
                 "saute_unsafe_reward",

@@ -77,7 +77,8 @@
 //! until measured: behaviour noise capped once a trajectory has found its goal
 //! (`eps_after_success`), a critic-only bonus for cells new to the trajectory
 //! until its first success (`novelty_bonus`, annealed over
-//! `novelty_anneal_updates`; gated by the budget with `novelty_budget`:
+//! `novelty_anneal_updates`, rising with the episode index by
+//! `novelty_rise`; gated by the budget with `novelty_budget`:
 //! withheld past it, or scaled by the share of it left), the actor's
 //! penalty at decision time,
 //! max(0, Qc - CTG_t), instead of Algorithm 1's hindsight flag

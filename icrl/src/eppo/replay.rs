@@ -526,7 +526,8 @@ pub(super) fn make_batch(
                 NoveltyBudget::RemainingShare => (t.ctg[step] / t.budget).clamp(0.0, 1.0),
                 NoveltyBudget::Always | NoveltyBudget::WithinBudget => 1.0,
             };
-            let novelty = shaping.novelty * novel[step] * share;
+            let rise = 1.0 + cfg.novelty_rise as f32 * t.episode[step] as f32;
+            let novelty = shaping.novelty * novel[step] * share * rise;
             let shaped = t.rewards[step] + dense + novelty;
             let reward = match shaping.over_budget {
                 Some(o) if budget_spent => {
