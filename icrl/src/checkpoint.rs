@@ -337,6 +337,22 @@ pub fn read_manifest(dir: &Path) -> Result<Manifest, CheckpointError> {
     Ok(manifest)
 }
 
+/// Which checkpoints a run keeps: the newest `newest` (0: all) and, besides
+/// them, every one written at a multiple of `every` updates (0: none), the
+/// run's history to evaluate or fork from after its latest checkpoints have
+/// moved past a good stretch.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct Retention {
+    pub newest: usize,
+    pub every: u64,
+}
+
+impl Retention {
+    fn kept_for_history(&self, updates: u64) -> bool {
+        self.every > 0 && updates % self.every == 0
+    }
+}
+
 /// A run folder.
 #[derive(Clone, Debug)]
 pub struct RunDir {
@@ -720,35 +736,48 @@ impl RunDir {
     }
 
     /// Refuses to train when the run's disk lacks room for the checkpoints
-    /// still to come: each about `checkpoint_bytes`; with `keep` kept (0:
-    /// all), `keep` + 1 are on disk at once while the newest is written, and
-    /// one is written every `every` of the `updates_left` updates and at the end.
+    /// still to come: each about `checkpoint_bytes`; with the newest
+    /// `keep.newest` kept (0: all), that many + 1 are on disk at once while
+    /// the newest is written, plus those kept for history; one is written
+    /// every `every` of the `updates_left` updates and at the end.
     pub fn check_room(
         &self,
         checkpoint_bytes: u64,
-        keep: usize,
+        keep: Retention,
         updates_left: u64,
         every: u64,
     ) -> Result<(), CheckpointError> {
         let future = updates_left / every.max(1) + 1;
         let dir = self.path.join("checkpoints");
-        let existing = self.checkpoints()?.len() as u64;
-        let at_once = if keep == 0 {
-            existing + future
+        let existing = self.checkpoints()?;
+        let recent = existing
+            .iter()
+            .filter(|(updates, _)| !keep.kept_for_history(*updates))
+            .count() as u64;
+        let more = if keep.newest == 0 {
+            future
         } else {
-            keep as u64 + 1
+            let history = match keep.every {
+                0 => 0,
+                n => updates_left / n,
+            };
+            (keep.newest as u64 + 1)
+                .saturating_sub(recent)
+                .clamp(1, future)
+                + history
         };
-        let more = at_once.saturating_sub(existing).clamp(1, future.max(1));
         let need = more.saturating_mul(checkpoint_bytes);
         safety_envs::output::check_room(
             &dir,
             need,
             &format!(
-                "{more} more checkpoint{} of about {} each (keep_checkpoints = {keep})",
+                "{more} more checkpoint{} of about {} each (keep_checkpoints = {}, keep_every = {})",
                 if more == 1 { "" } else { "s" },
-                safety_envs::output::human_bytes(checkpoint_bytes as f64)
+                safety_envs::output::human_bytes(checkpoint_bytes as f64),
+                keep.newest,
+                keep.every
             ),
-            "free space on it, lower keep_checkpoints, or pass another --out",
+            "free space on it, lower keep_checkpoints, raise keep_every, or pass another --out",
         )
         .map_err(|e| CheckpointError::Invalid {
             path: e.path,
@@ -759,7 +788,7 @@ impl RunDir {
 
     /// Writes `checkpoints/step_{updates}` atomically: `write` fills a
     /// temporary folder, the manifest (with every file's size) is added, and
-    /// the folder is renamed into place. Keeps the newest `keep` checkpoints.
+    /// the folder is renamed into place. Prunes to what `keep` retains.
     #[allow(clippy::too_many_arguments)]
     pub fn write_checkpoint(
         &self,
@@ -768,7 +797,7 @@ impl RunDir {
         env: &str,
         physics_steps_per_action: Option<usize>,
         model: serde_json::Value,
-        keep: usize,
+        keep: Retention,
         write: impl FnOnce(&Path) -> Result<(), CheckpointError>,
     ) -> Result<PathBuf, CheckpointError> {
         self.check_present()?;
@@ -846,15 +875,17 @@ impl RunDir {
         fs::rename(tmp, dest).map_err(io(dest))
     }
 
-    /// Removes all but the newest `keep` checkpoints (keep 0 = keep all).
-    fn prune(&self, keep: usize) -> Result<(), CheckpointError> {
-        if keep == 0 {
+    /// Removes the checkpoints `keep` does not retain.
+    fn prune(&self, keep: Retention) -> Result<(), CheckpointError> {
+        if keep.newest == 0 {
             return Ok(());
         }
         let steps = self.checkpoints()?;
-        let excess = steps.len().saturating_sub(keep);
-        for (_, p) in steps.into_iter().take(excess) {
-            remove_checkpoint(&p)?;
+        let older = steps.len().saturating_sub(keep.newest);
+        for (updates, p) in steps.into_iter().take(older) {
+            if !keep.kept_for_history(updates) {
+                remove_checkpoint(&p)?;
+            }
         }
         Ok(())
     }
@@ -1039,6 +1070,14 @@ impl MetricsWriter {
 mod tests {
     use super::*;
 
+    /// The newest `n` checkpoints, no history.
+    fn keep(n: usize) -> Retention {
+        Retention {
+            newest: n,
+            every: 0,
+        }
+    }
+
     #[test]
     fn a_checkpoint_path_the_file_system_refuses_fails_before_training() {
         let base = std::env::temp_dir().join(format!("icrl-ckpt-probe-{}", std::process::id()));
@@ -1071,12 +1110,12 @@ mod tests {
         let run = RunDir::create_named(&base, "run").unwrap();
         let model = serde_json::json!({});
         let good = run
-            .write_checkpoint(10, "test", "darkroom", None, model.clone(), 2, |d| {
+            .write_checkpoint(10, "test", "darkroom", None, model.clone(), keep(2), |d| {
                 fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d))
             })
             .unwrap();
         let e = run
-            .write_checkpoint(20, "test", "darkroom", None, model, 2, |d| {
+            .write_checkpoint(20, "test", "darkroom", None, model, keep(2), |d| {
                 fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d))?;
                 Err(CheckpointError::Invalid {
                     path: d.join("optimizer.safetensors"),
@@ -1098,9 +1137,9 @@ mod tests {
         );
         assert!(!run.path.join("checkpoints/step_20").exists());
         // Room for the checkpoints still to come is checked before training.
-        run.check_room(1 << 20, 2, 9900, 100).unwrap();
+        run.check_room(1 << 20, keep(2), 9900, 100).unwrap();
         let e = run
-            .check_room(u64::MAX / 4, 2, 9900, 100)
+            .check_room(u64::MAX / 4, keep(2), 9900, 100)
             .unwrap_err()
             .to_string();
         assert!(
@@ -1109,7 +1148,7 @@ mod tests {
             "{e}"
         );
         let e = run
-            .check_room(u64::MAX / 4, 0, 0, 100)
+            .check_room(u64::MAX / 4, keep(0), 0, 100)
             .unwrap_err()
             .to_string();
         assert!(e.contains("1 more checkpoint of about"), "{e}");
@@ -1122,9 +1161,15 @@ mod tests {
         let run = RunDir::create(&root, "darkroom", "test", 3).unwrap();
         let model = serde_json::json!({"d_model": 8});
         for step in [5, 10, 15] {
-            run.write_checkpoint(step, "test", "darkroom", None, model.clone(), 2, |dir| {
-                fs::write(dir.join("w.bin"), vec![1u8; 100]).map_err(io(dir))
-            })
+            run.write_checkpoint(
+                step,
+                "test",
+                "darkroom",
+                None,
+                model.clone(),
+                keep(2),
+                |dir| fs::write(dir.join("w.bin"), vec![1u8; 100]).map_err(io(dir)),
+            )
             .unwrap();
         }
         let latest = run.latest_checkpoint().unwrap().unwrap();
@@ -1166,9 +1211,15 @@ mod tests {
         let run = RunDir::create(&root, "point", "test", 1).unwrap();
         let model = serde_json::json!({"d_model": 8});
         let dir = run
-            .write_checkpoint(1, "test", "point", Some(50), model.clone(), 0, |dir| {
-                fs::write(dir.join("w.bin"), [0u8; 4]).map_err(io(dir))
-            })
+            .write_checkpoint(
+                1,
+                "test",
+                "point",
+                Some(50),
+                model.clone(),
+                keep(0),
+                |dir| fs::write(dir.join("w.bin"), [0u8; 4]).map_err(io(dir)),
+            )
             .unwrap();
         let m = read_manifest(&dir).unwrap();
         assert_eq!(m.physics_steps_per_action, Some(50));
@@ -1215,7 +1266,7 @@ mod tests {
                 "darkroom",
                 None,
                 serde_json::json!({}),
-                0,
+                keep(0),
                 |dir| fs::write(dir.join("model.safetensors"), vec![7u8; 256]).map_err(io(dir)),
             )
             .unwrap();
@@ -1320,7 +1371,7 @@ mod tests {
                 "darkroom",
                 None,
                 serde_json::json!({}),
-                2,
+                keep(2),
                 |d| fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d)),
             )
             .unwrap()
@@ -1360,6 +1411,47 @@ mod tests {
     }
 
     #[test]
+    fn checkpoints_at_multiples_of_keep_every_outlive_pruning() {
+        let root = std::env::temp_dir().join(format!("icrl-ckpt-every-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&root);
+        let run = RunDir::create(&root, "darkroom", "test", 1).unwrap();
+        let history = Retention {
+            newest: 2,
+            every: 100,
+        };
+        for step in (50..=400).step_by(50) {
+            run.write_checkpoint(
+                step,
+                "test",
+                "darkroom",
+                None,
+                serde_json::json!({}),
+                history,
+                |d| fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d)),
+            )
+            .unwrap();
+        }
+        let kept: Vec<u64> = run.checkpoints().unwrap().iter().map(|c| c.0).collect();
+        assert_eq!(
+            kept,
+            vec![100, 200, 300, 350, 400],
+            "history + the newest 2"
+        );
+        // The room asked for counts the history still to come: the newest 2
+        // and the one being written, less 350 already there, and the
+        // 1000 / 100 kept on the way.
+        let e = run
+            .check_room(u64::MAX / 64, history, 1000, 50)
+            .unwrap_err()
+            .to_string();
+        assert!(
+            e.contains("12 more checkpoints") && e.contains("keep_every = 100"),
+            "{e}"
+        );
+        fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
     fn a_run_whose_folder_disappears_stops_instead_of_remaking_it() {
         let root = std::env::temp_dir().join(format!("icrl-ckpt-gone-{}", std::process::id()));
         let _ = fs::remove_dir_all(&root);
@@ -1377,9 +1469,15 @@ mod tests {
             .to_string();
         assert!(e.contains("metrics file is gone"), "{e}");
         let e = run
-            .write_checkpoint(5, "test", "darkroom", None, serde_json::json!({}), 0, |d| {
-                fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d))
-            })
+            .write_checkpoint(
+                5,
+                "test",
+                "darkroom",
+                None,
+                serde_json::json!({}),
+                keep(0),
+                |d| fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d)),
+            )
             .unwrap_err()
             .to_string();
         assert!(e.contains("the run folder is gone"), "{e}");

@@ -53,7 +53,7 @@ pub(super) fn save_checkpoint(
         &spec.env,
         spec.physics_steps_per_action,
         model_manifest(cfg, spec),
-        cfg.keep_checkpoints,
+        cfg.retention(),
         |dir| {
             let wrap = |path: PathBuf, e: String| CheckpointError::Invalid {
                 path,

@@ -8,6 +8,7 @@ use std::path::Path;
 use serde::{Deserialize, Serialize};
 
 use super::AdError;
+use crate::checkpoint::Retention;
 use crate::data::histories::HistoryFile;
 use crate::model::{self};
 use crate::task_seeds::PretrainTasks;
@@ -58,6 +59,10 @@ pub struct AdConfig {
     /// Checkpoints kept (0 keeps all).
     #[serde(default = "default_keep_checkpoints")]
     pub keep_checkpoints: usize,
+    /// Besides the newest `keep_checkpoints`, keep every checkpoint written
+    /// at a multiple of this many updates (0: none).
+    #[serde(default)]
+    pub keep_every: u64,
     /// Seed of initialisation and window sampling.
     pub seed: u64,
     /// libtorch intra-op threads; 0 keeps libtorch's default (one per core).
@@ -133,6 +138,14 @@ pub fn preset_table(env: &str, preset: &str) -> Result<toml::Table, AdError> {
 }
 
 impl AdConfig {
+    /// Which checkpoints the run keeps.
+    pub fn retention(&self) -> Retention {
+        Retention {
+            newest: self.keep_checkpoints,
+            every: self.keep_every,
+        }
+    }
+
     /// Parses a TOML config.
     pub fn from_toml(text: &str) -> Result<Self, AdError> {
         let cfg: AdConfig = toml::from_str(text).map_err(|e| AdError::Config(e.to_string()))?;

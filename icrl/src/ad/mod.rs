@@ -373,7 +373,7 @@ fn resume_or_start(
     run.probe_checkpoint_path(cfg.updates as u64)?;
     run.check_room(
         opt.checkpoint_bytes() + crate::checkpoint::CHECKPOINT_SLACK,
-        cfg.keep_checkpoints,
+        cfg.retention(),
         cfg.updates.saturating_sub(state.update) as u64,
         cfg.checkpoint_every as u64,
     )?;
@@ -414,7 +414,7 @@ fn split_histories<'a>(
 }
 
 /// Refuses to resume a run whose `config.toml` differs from `req.cfg` in
-/// anything but `updates` and `keep_checkpoints`, or whose `spec.json` says
+/// anything but `updates`, `keep_checkpoints` and `keep_every`, or whose `spec.json` says
 /// it was trained on other data than `spec`'s.
 fn check_resumable(
     req: &TrainRequest<'_>,
@@ -426,12 +426,16 @@ fn check_resumable(
     let old = AdConfig::from_toml(&old_text).map_err(|e| io_err(config_path, e))?;
     let differ: Vec<String> = config_diff(&old, cfg)
         .into_iter()
-        .filter(|d| !d.starts_with("updates:") && !d.starts_with("keep_checkpoints:"))
+        .filter(|d| {
+            !["updates:", "keep_checkpoints:", "keep_every:"]
+                .iter()
+                .any(|key| d.starts_with(key))
+        })
         .collect();
     if !differ.is_empty() {
         return Err(AdError::Config(format!(
             "cannot resume {}: these settings differ from its config.toml: {}; only updates \
-             (to extend the run) and keep_checkpoints may change",
+             (to extend the run), keep_checkpoints and keep_every may change",
             dir.display(),
             differ.join(", ")
         )));

@@ -138,10 +138,11 @@ pub fn run_in_out(
 /// learning overlap: the replay ratio stays, so only the policy's lag does
 /// not). Any other change (`lr`, `seed`, the model, `replay_ratio`, ...)
 /// would make one run of two configurations, and is refused.
-pub const EPPO_RESUME_MAY_CHANGE: [&str; 8] = [
+pub const EPPO_RESUME_MAY_CHANGE: [&str; 9] = [
     "total_updates",
     "checkpoint_every",
     "keep_checkpoints",
+    "keep_every",
     "torch_threads",
     "env_threads",
     "device",

@@ -56,7 +56,7 @@ impl Learner {
             self.env
                 .physics_steps_per_action(self.cfg.physics_steps_per_action),
             self.model_manifest(),
-            self.cfg.keep_checkpoints,
+            self.cfg.retention(),
             |dir| {
                 let wrap = |path: PathBuf, e: String| CheckpointError::Invalid {
                     path,

@@ -14,7 +14,7 @@ use safety_envs::EnvError;
 use super::multiplier::Gains;
 use super::net::NetSpec;
 use super::replay::{OverBudget, Shaping};
-use crate::checkpoint::CheckpointError;
+use crate::checkpoint::{CheckpointError, Retention};
 use crate::model::{self, ModelError};
 
 /// Every EPPO hyperparameter (presets in `icrl/presets/eppo-*.toml`).
@@ -186,6 +186,11 @@ pub struct EppoConfig {
     pub checkpoint_every: u64,
     /// Checkpoints kept (0 keeps all).
     pub keep_checkpoints: usize,
+    /// Besides the newest `keep_checkpoints`, keep every checkpoint written
+    /// at a multiple of this many updates (0: none), to evaluate the run's
+    /// history or fork from a good stretch that later training lost.
+    #[serde(default)]
+    pub keep_every: u64,
     /// Point and Car: MuJoCo physics steps per agent action (the macro
     /// action; 5 Safety-Gymnasium steps x 10 physics steps = 50 when absent).
     /// SafeDarkRoom has no physics: leave it out. Checkpoints record the
@@ -822,6 +827,14 @@ impl EppoConfig {
                 self.eps_last_end.unwrap_or(self.eps_end),
             ),
             after_success: self.eps_after_success,
+        }
+    }
+
+    /// Which checkpoints the run keeps.
+    pub fn retention(&self) -> Retention {
+        Retention {
+            newest: self.keep_checkpoints,
+            every: self.keep_every,
         }
     }
 

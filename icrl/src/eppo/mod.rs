@@ -503,7 +503,7 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
         // Weights, Adam's moments and the target weights (a third of the first).
         run.check_room(
             learner.opt.checkpoint_bytes() * 4 / 3 + crate::checkpoint::CHECKPOINT_SLACK,
-            cfg.keep_checkpoints,
+            cfg.retention(),
             cfg.total_updates.saturating_sub(learner.updates),
             cfg.checkpoint_every,
         )?;
