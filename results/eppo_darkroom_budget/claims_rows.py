@@ -21,7 +21,9 @@ CLAIMS = Path(__file__).resolve().parent.parent / "claims.py"
 def low_budget_cost_drop(folder):
     """Per task, first-minus-last-window cost over budgets below the random
     policy's mean episode cost; mean and s.e. over tasks."""
-    agent = json.loads(Path(folder, "eppo_darkroom.json").read_text())["result"]
+    # eppo_darkroom.json, or eppo_LABEL_darkroom.json for a labelled checkpoint.
+    [path] = [p for p in Path(folder).glob("eppo_*darkroom.json") if "_sweep" not in p.name]
+    agent = json.loads(path.read_text())["result"]
     random = json.loads(Path(folder, "random_darkroom.json").read_text())["result"]
     costs = [x for c in random["costs"] for t in c for x in t]
     bar = sum(costs) / len(costs)
@@ -41,7 +43,8 @@ def row(label, folder):
     text = subprocess.run([sys.executable, str(CLAIMS), folder], capture_output=True,
                           text=True, check=True).stdout
     eppo = text.split("darkroom Random")[0]
-    fig1, sweep = eppo.split("Eppo sweep")
+    # The header names the checkpoint's label when it has one: "Eppo [LABEL] sweep".
+    fig1, sweep = re.split(r"Eppo (?:\[[^\]]*\] )?sweep", eppo)
     gain = re.search(r"gain (\S+) ± (\S+): (\w+)", fig1)
     drop = re.search(r"drop (\S+) ± (\S+): (\w+)", fig1)
     safe = re.search(r"last-window cost (\S+) vs mean budget (\S+): (\w+)", fig1)
