@@ -1078,6 +1078,20 @@ mod tests {
         }
     }
 
+    /// A checkpoint of one small file at `step`, pruned to what `keep` retains.
+    fn write_small(run: &RunDir, step: u64, keep: Retention) -> Result<PathBuf, CheckpointError> {
+        let write = |d: &Path| fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d));
+        run.write_checkpoint(
+            step,
+            "test",
+            "darkroom",
+            None,
+            serde_json::json!({}),
+            keep,
+            write,
+        )
+    }
+
     #[test]
     fn a_checkpoint_path_the_file_system_refuses_fails_before_training() {
         let base = std::env::temp_dir().join(format!("icrl-ckpt-probe-{}", std::process::id()));
@@ -1364,18 +1378,7 @@ mod tests {
         let _ = fs::remove_dir_all(&root);
         let run = RunDir::create(&root, "darkroom", "test", 1).unwrap();
         run.write_config("x = 1").unwrap();
-        let write = |step: u64| {
-            run.write_checkpoint(
-                step,
-                "test",
-                "darkroom",
-                None,
-                serde_json::json!({}),
-                keep(2),
-                |d| fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d)),
-            )
-            .unwrap()
-        };
+        let write = |step: u64| write_small(&run, step, keep(2)).unwrap();
         let first = write(10);
         // A user's notes in a checkpoint, and a run nested inside one: refused.
         fs::write(first.join("notes.txt"), "mine").unwrap();
@@ -1420,16 +1423,7 @@ mod tests {
             every: 100,
         };
         for step in (50..=400).step_by(50) {
-            run.write_checkpoint(
-                step,
-                "test",
-                "darkroom",
-                None,
-                serde_json::json!({}),
-                history,
-                |d| fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d)),
-            )
-            .unwrap();
+            write_small(&run, step, history).unwrap();
         }
         let kept: Vec<u64> = run.checkpoints().unwrap().iter().map(|c| c.0).collect();
         assert_eq!(
@@ -1468,18 +1462,7 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(e.contains("metrics file is gone"), "{e}");
-        let e = run
-            .write_checkpoint(
-                5,
-                "test",
-                "darkroom",
-                None,
-                serde_json::json!({}),
-                keep(0),
-                |d| fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d)),
-            )
-            .unwrap_err()
-            .to_string();
+        let e = write_small(&run, 5, keep(0)).unwrap_err().to_string();
         assert!(e.contains("the run folder is gone"), "{e}");
         assert!(!run.path.exists(), "the run folder is not remade");
         fs::remove_dir_all(&root).unwrap();
