@@ -349,7 +349,7 @@ pub struct Retention {
 
 impl Retention {
     fn kept_for_history(&self, updates: u64) -> bool {
-        self.every > 0 && updates % self.every == 0
+        self.every > 0 && updates.is_multiple_of(self.every)
     }
 }
 
