@@ -341,7 +341,7 @@ pub fn read_manifest(dir: &Path) -> Result<Manifest, CheckpointError> {
 /// them, every one written at a multiple of `every` updates (0: none), the
 /// run's history to evaluate or fork from after its latest checkpoints have
 /// moved past a good stretch.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Retention {
     pub newest: usize,
     pub every: u64,
@@ -1122,21 +1122,24 @@ mod tests {
         let base = std::env::temp_dir().join(format!("icrl-ckpt-failed-{}", std::process::id()));
         let _ = fs::remove_dir_all(&base);
         let run = RunDir::create_named(&base, "run").unwrap();
-        let model = serde_json::json!({});
-        let good = run
-            .write_checkpoint(10, "test", "darkroom", None, model.clone(), keep(2), |d| {
-                fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d))
-            })
-            .unwrap();
+        let good = write_small(&run, 10, keep(2)).unwrap();
         let e = run
-            .write_checkpoint(20, "test", "darkroom", None, model, keep(2), |d| {
-                fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d))?;
-                Err(CheckpointError::Invalid {
-                    path: d.join("optimizer.safetensors"),
-                    problem: "No space left on device (os error 28)".into(),
-                    fix: "check the disk".into(),
-                })
-            })
+            .write_checkpoint(
+                20,
+                "test",
+                "darkroom",
+                None,
+                serde_json::json!({}),
+                keep(2),
+                |d| {
+                    fs::write(d.join("w.bin"), [1u8; 8]).map_err(io(d))?;
+                    Err(CheckpointError::Invalid {
+                        path: d.join("optimizer.safetensors"),
+                        problem: "No space left on device (os error 28)".into(),
+                        fix: "check the disk".into(),
+                    })
+                },
+            )
             .unwrap_err()
             .to_string();
         assert!(e.contains("step_20: writing this checkpoint failed"), "{e}");

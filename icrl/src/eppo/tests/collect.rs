@@ -364,38 +364,34 @@ fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
         ..Default::default()
     };
     let cfg = tiny();
-    let batch = |novelty: f32| {
+    let batch = |cfg: &EppoConfig, novelty: f32| {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let shaping = Shaping {
             novelty,
             over_budget: None,
         };
-        make_batch(&[&t], &cfg, &spec, shaping, &mut rng, Device::Cpu)
+        make_batch(&[&t], cfg, &spec, shaping, &mut rng, Device::Cpu)
     };
-    let (plain, bonus) = (batch(0.0), batch(0.1));
+    let plain = batch(&cfg, 0.0);
+    // What each step's critic reward carries over `plain`'s, in reward units.
+    let paid = |shaped: &Batch| -> Vec<f32> {
+        to_vec(&shaped.rewards)
+            .iter()
+            .zip(to_vec(&plain.rewards))
+            .map(|(b, p)| ((b - p) / cfg.reward_scale as f32 * 1000.0).round() / 1000.0)
+            .collect()
+    };
+    let bonus = batch(&cfg, 0.1);
     assert_eq!(to_vec(&plain.tokens), to_vec(&bonus.tokens));
-    let diff: Vec<f32> = to_vec(&bonus.rewards)
-        .iter()
-        .zip(to_vec(&plain.rewards))
-        .map(|(b, p)| ((b - p) / cfg.reward_scale as f32 * 100.0).round() / 100.0)
-        .collect();
-    assert_eq!(diff, vec![0.1, 0.0, 0.1, 0.0, 0.1, 0.0, 0.0, 0.0]);
+    assert_eq!(paid(&bonus), vec![0.1, 0.0, 0.1, 0.0, 0.1, 0.0, 0.0, 0.0]);
     // Rising with the episode index: the arrival at step 4 is in episode 1
     // (from 0), so it earns 0.1 x (1 + 0.5 x 1); episode 0's are unchanged.
     let mut rising = cfg.clone();
     rising.novelty_rise = 0.5;
-    let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let shaping = Shaping {
-        novelty: 0.1,
-        over_budget: None,
-    };
-    let risen = make_batch(&[&t], &rising, &spec, shaping, &mut rng, Device::Cpu);
-    let diff: Vec<f32> = to_vec(&risen.rewards)
-        .iter()
-        .zip(to_vec(&plain.rewards))
-        .map(|(b, p)| ((b - p) / cfg.reward_scale as f32 * 1000.0).round() / 1000.0)
-        .collect();
-    assert_eq!(diff, vec![0.1, 0.0, 0.1, 0.0, 0.15, 0.0, 0.0, 0.0]);
+    assert_eq!(
+        paid(&batch(&rising, 0.1)),
+        vec![0.1, 0.0, 0.1, 0.0, 0.15, 0.0, 0.0, 0.0]
+    );
     rising.novelty_rise = -0.1;
     assert!(
         rising
