@@ -256,9 +256,12 @@ pub(super) fn model_manifest(cfg: &EppoConfig, spec: &NetSpec) -> serde_json::Va
         "n_actions": spec.n_actions,
         "act_dim": spec.act_flat(),
     });
-    // Only runs with the head record it, so older checkpoints stay loadable.
+    // Only runs with these heads record them, so older checkpoints stay loadable.
     if cfg.goal_recall_coef > 0.0 {
         manifest["goal_recall_head"] = true.into();
+    }
+    if cfg.novelty_critic {
+        manifest["novelty_critic"] = true.into();
     }
     manifest
 }

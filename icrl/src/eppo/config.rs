@@ -289,6 +289,14 @@ pub struct EppoConfig {
     /// held-out search stopped after episode 6-7 (issues 18, 19). 0: flat.
     #[serde(default)]
     pub novelty_rise: f64,
+    /// The novelty bonus gets critics of its own, kept apart from the task's
+    /// reward critics, and the actor weighs them only on steps whose context
+    /// holds no success yet: once a goal is found, nothing of the search
+    /// incentive reaches the steps that should drive back to it. In one
+    /// shared critic, more pay for search cost the revisits on both domains
+    /// (ps3, ps5, ps7, dn1). After RND's separate intrinsic value head.
+    #[serde(default)]
+    pub novelty_critic: bool,
     /// How the episode's budget gates the novelty bonus (issue 18). Paid
     /// everywhere, the bonus let search ignore the budget
     /// (results/eppo_darkroom_budget, ex4). Older configs'
@@ -708,6 +716,13 @@ impl EppoConfig {
             return bad(
                 "novelty_budget gates the novelty bonus, which is off (novelty_bonus = 0): set \
                  novelty_bonus > 0, or drop novelty_budget"
+                    .to_string(),
+            );
+        }
+        if self.novelty_critic && self.novelty_bonus == 0.0 {
+            return bad(
+                "novelty_critic learns the novelty bonus's value, which is off (novelty_bonus = \
+                 0): set novelty_bonus > 0, or drop novelty_critic"
                     .to_string(),
             );
         }

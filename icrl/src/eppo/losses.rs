@@ -26,6 +26,8 @@ pub struct UpdateStats {
     pub log_std_mean: f64,
     /// The goal-recall loss (NaN without the head).
     pub goal_recall_loss: f64,
+    /// Mean Q of the novelty critics on the replayed actions (NaN without).
+    pub novelty_q_mean: f64,
 }
 
 /// What [`losses`] returns besides the three losses and the entropy.
@@ -35,6 +37,9 @@ pub(super) struct LossDiagnostics {
     pub(super) log_std_mean: Option<Tensor>,
     /// The goal-recall loss (with gradient), where the net has the head.
     pub(super) goal_recall: Option<Tensor>,
+    /// Mean Q of the novelty critics on the replayed actions, where the net
+    /// has them.
+    pub(super) novelty_q_mean: Option<Tensor>,
 }
 
 /// Shifts (B, L) left by one along time: out[:, t] = x[:, t + 1], 0 at the end.
@@ -73,7 +78,8 @@ pub(super) fn n_step_targets(
 
 /// The three losses on one batch (before any step), and the policy entropy;
 /// `lambda` prices the cost, `entropy_coef` weighs the entropy bonus (both
-/// the learner's current values).
+/// the learner's current values). With novelty critics, Lv also holds their
+/// TD loss on the novelty rewards.
 pub(super) fn losses(
     net: &EppoNet,
     target: &EppoNet,
@@ -86,7 +92,7 @@ pub(super) fn losses(
     crate::torch_rng::drawing(|| {
         let h = net.encode(&batch.tokens, true)?; // (B, L, D)
         let c = cfg.n_critics;
-        let (y, yc) = td_targets(net, target, batch, cfg)?; // (B, L) each
+        let (y, yc, yn) = td_targets(net, target, batch, cfg)?; // (B, L) each
         let td_mask = batch.td_valid.unsqueeze(-1); // (B, L, 1)
         let actor = match net.spec.n_actions {
             Some(_) => discrete_actor(net, &h, batch, lambda, entropy_coef, cfg),
@@ -103,16 +109,24 @@ pub(super) fn losses(
                 .goal_recall
                 .as_ref()
                 .map(|head| goal_recall_loss(head, &h, batch)),
+            novelty_q_mean: actor.qn_taken.as_ref().map(|qn| {
+                masked_mean(
+                    &qn.detach().mean_dim(-1, false, Kind::Float),
+                    &batch.td_valid,
+                )
+            }),
         };
-        let (q_taken, qc_taken) = (actor.q_taken, actor.qc_taken);
-        let value_loss = masked_mean(
-            &(q_taken - y.unsqueeze(-1)).square(),
-            &td_mask.expand([-1, -1, c], false),
-        );
-        let cost_value_loss = masked_mean(
-            &(qc_taken - yc.unsqueeze(-1)).square(),
-            &td_mask.expand([-1, -1, c], false),
-        );
+        let td_loss = |q: &Tensor, y: &Tensor| {
+            masked_mean(
+                &(q - y.unsqueeze(-1)).square(),
+                &td_mask.expand([-1, -1, c], false),
+            )
+        };
+        let mut value_loss = td_loss(&actor.q_taken, &y);
+        if let (Some(qn), Some(yn)) = (&actor.qn_taken, &yn) {
+            value_loss += td_loss(qn, yn);
+        }
+        let cost_value_loss = td_loss(&actor.qc_taken, &yc);
         Ok((
             value_loss,
             cost_value_loss,
@@ -133,69 +147,82 @@ pub(super) fn goal_recall_loss(head: &Head, h: &Tensor, batch: &Batch) -> Tensor
     masked_mean(&error, &batch.goal_known)
 }
 
-/// The reward and cost TD targets y and yc, (B, L) each, from the target
-/// networks at t + 1 (no gradient).
+/// The reward, cost and (with novelty critics) novelty TD targets y, yc
+/// and yn, (B, L) each, from the target networks at t + 1 (no gradient).
 fn td_targets(
     net: &EppoNet,
     target: &EppoNet,
     batch: &Batch,
     cfg: &EppoConfig,
-) -> Result<(Tensor, Tensor), EppoError> {
-    // Targets from the target networks at t + 1, no gradient.
-    let (v_next, vc_next) = tch::no_grad(|| -> Result<(Tensor, Tensor), EppoError> {
+) -> Result<(Tensor, Tensor, Option<Tensor>), EppoError> {
+    // Each step's values from the target networks under the target actor,
+    // no gradient: (B, L, C) per head, then over the C critics.
+    let (v, vc, vn) = tch::no_grad(|| -> Result<_, EppoError> {
         let ht = target.encode(&batch.tokens, false)?; // (B, L, D)
-        let (v, vc) =
-            match net.spec.n_actions {
-                Some(_) => {
-                    // Expected value under the target actor: sum_a pi'(a) Q'(h, a).
-                    let pi = target
-                        .actor
-                        .forward(&ht)
-                        .softmax(-1, Kind::Float)
-                        .unsqueeze(2); // (B, L, 1, A)
-                    let q = (target.critic_values(&target.critic, &ht, false) * &pi)
-                        .sum_dim_intlist(-1, false, Kind::Float); // (B, L, C)
-                    let qc = (target.critic_values(&target.cost_critic, &ht, false) * &pi)
-                        .sum_dim_intlist(-1, false, Kind::Float); // (B, L, C)
-                    (q.amin(-1, false), qc.mean_dim(-1, false, Kind::Float))
-                }
-                None => {
-                    let (mean, log_std) = target.gaussian(&ht);
-                    let (a, _) = tanh_gaussian_sample(&mean, &log_std, &mean.randn_like());
-                    let q = target.critic_sa(&target.critic, &ht, &a, false); // (B, L, C)
-                    let qc = target.critic_sa(&target.cost_critic, &ht, &a, false); // (B, L, C)
-                    (q.amin(-1, false), qc.mean_dim(-1, false, Kind::Float))
-                }
-            }; // (B, L) each
-        Ok((next_step(&v), next_step(&vc)))
+        let values: Box<dyn Fn(&Head) -> Tensor + '_> = match net.spec.n_actions {
+            Some(_) => {
+                // Expected value under the target actor: sum_a pi'(a) Q'(h, a).
+                let pi = target
+                    .actor
+                    .forward(&ht)
+                    .softmax(-1, Kind::Float)
+                    .unsqueeze(2); // (B, L, 1, A)
+                Box::new(move |head| {
+                    (target.critic_values(head, &ht, false) * &pi).sum_dim_intlist(
+                        -1,
+                        false,
+                        Kind::Float,
+                    )
+                })
+            }
+            None => {
+                let (mean, log_std) = target.gaussian(&ht);
+                let (a, _) = tanh_gaussian_sample(&mean, &log_std, &mean.randn_like());
+                Box::new(move |head| target.critic_sa(head, &ht, &a, false))
+            }
+        };
+        let mean = |q: Tensor| q.mean_dim(-1, false, Kind::Float);
+        Ok((
+            values(&target.critic).amin(-1, false),
+            mean(values(&target.cost_critic)),
+            target
+                .novelty_critic
+                .as_ref()
+                .map(|head| mean(values(head))),
+        )) // (B, L) each
     })?;
     // y = r + gamma * [bootstraps] * V'(t + 1); the bootstrap masks carry the
     // terminated / truncated / trajectory-end decision made in `make_batch`;
     // the cost's also stops at every episode end (per-episode constraint).
-    let y = n_step_targets(
-        &batch.rewards,
-        &batch.bootstrap,
-        &batch.td_valid,
-        &v_next,
-        cfg.gamma,
-        cfg.n_step,
-    ); // (B, L)
-    let yc = n_step_targets(
-        &batch.costs,
-        &batch.cost_bootstrap,
-        &batch.td_valid,
-        &vc_next,
-        cfg.gamma,
-        cfg.n_step,
-    ); // (B, L)
-    Ok((y, yc))
+    let targets = |r: &Tensor, bootstrap: &Tensor, v: &Tensor| {
+        n_step_targets(
+            r,
+            bootstrap,
+            &batch.td_valid,
+            &next_step(v),
+            cfg.gamma,
+            cfg.n_step,
+        ) // (B, L)
+    };
+    let y = targets(&batch.rewards, &batch.bootstrap, &v);
+    let yc = targets(&batch.costs, &batch.cost_bootstrap, &vc);
+    // The novelty critics bootstrap as the reward critics do; their reward
+    // stops at the trajectory's first success.
+    let yn = batch
+        .novelty_rewards
+        .as_ref()
+        .zip(vn.as_ref())
+        .map(|(r, v)| targets(r, &batch.bootstrap, v));
+    Ok((y, yc, yn))
 }
 
 /// The actor's terms and the critics on the replayed actions.
 struct ActorTerms {
-    /// (B, L, C) the reward and cost critics at (h_t, a_t).
+    /// (B, L, C) the reward, cost and (where the net has them) novelty
+    /// critics at (h_t, a_t).
     q_taken: Tensor,
     qc_taken: Tensor,
+    qn_taken: Option<Tensor>,
     /// Lp (filtered BC included) and the policy entropy, masked means.
     policy_loss: Tensor,
     entropy: Tensor,
@@ -212,8 +239,15 @@ fn actor_input(h: &Tensor, cfg: &EppoConfig) -> Tensor {
     }
 }
 
+/// The novelty critics' weight in the actor, (B, L): 1 on the steps whose
+/// context holds no success yet, 0 after one (nothing to search for).
+fn searching(batch: &Batch) -> Tensor {
+    batch.goal_known.ones_like() - &batch.goal_known
+}
+
 /// Discrete actions: Lp as the expectation of -Q + lambda v_e Qc under the
-/// actor's own distribution, minus the entropy bonus, plus filtered BC.
+/// actor's own distribution, minus the entropy bonus, plus filtered BC; Q
+/// holds the novelty critics' value while searching.
 fn discrete_actor(
     net: &EppoNet,
     h: &Tensor,
@@ -230,12 +264,25 @@ fn discrete_actor(
         .expand([-1, -1, cfg.n_critics, 1], false); // (B, L) -> (B, L, C, 1)
     let q_taken = q_all.gather(3, &idx, false).squeeze_dim(3); // (B, L, C)
     let qc_taken = qc_all.gather(3, &idx, false).squeeze_dim(3); // (B, L, C)
+    let qn_all = net
+        .novelty_critic
+        .as_ref()
+        .map(|head| net.critic_values(head, h, false)); // (B, L, C, A)
+    let qn_taken = qn_all
+        .as_ref()
+        .map(|qn| qn.gather(3, &idx, false).squeeze_dim(3)); // (B, L, C)
     // Actor: expectation of -Q + lambda v_e Qc under its own distribution;
     // critic values are constants here (detached).
     let logits = net.actor.forward(&actor_input(h, cfg)); // (B, L, A)
     let logp = logits.log_softmax(-1, Kind::Float);
     let pi = logp.exp();
-    let q = q_all.detach().amin(2, false); // (B, L, A)
+    let q = match &qn_all {
+        Some(qn) => {
+            q_all.detach().amin(2, false)
+                + qn.detach().mean_dim(2, false, Kind::Float) * searching(batch).unsqueeze(-1)
+        }
+        None => q_all.detach().amin(2, false),
+    }; // (B, L, A)
     let qc = qc_all.detach().mean_dim(2, false, Kind::Float); // (B, L, A)
     let penalty = lambda * cfg.reward_scale;
     let paid = penalised_cost(
@@ -261,6 +308,7 @@ fn discrete_actor(
     ActorTerms {
         q_taken,
         qc_taken,
+        qn_taken,
         policy_loss: masked_mean(&objective, &batch.valid),
         entropy: masked_mean(&entropy, &batch.valid),
         log_std_mean: None,
@@ -268,7 +316,8 @@ fn discrete_actor(
 }
 
 /// Continuous actions: Lp on a reparameterised tanh-Gaussian sample a_hat,
-/// judged by frozen critics, plus filtered BC.
+/// judged by frozen critics (the novelty critics' value added while
+/// searching), plus filtered BC.
 fn continuous_actor(
     net: &EppoNet,
     h: &Tensor,
@@ -279,6 +328,10 @@ fn continuous_actor(
 ) -> ActorTerms {
     let q_taken = net.critic_sa(&net.critic, h, &batch.actions, false); // (B, L, C)
     let qc_taken = net.critic_sa(&net.cost_critic, h, &batch.actions, false); // (B, L, C)
+    let qn_taken = net
+        .novelty_critic
+        .as_ref()
+        .map(|head| net.critic_sa(head, h, &batch.actions, false)); // (B, L, C)
     let (mean, log_std) = net.gaussian(&actor_input(h, cfg));
     let log_std_mean = Some(masked_mean(
         &log_std.detach().mean_dim(-1, false, Kind::Float),
@@ -290,7 +343,13 @@ fn continuous_actor(
     // encoder through the actor's input).
     let hd = h.detach();
     let q_hat = net.critic_sa(&net.critic, &hd, &a_hat, true); // (B, L, C)
-    let q = q_hat.amin(-1, false); // (B, L)
+    let q = match &net.novelty_critic {
+        Some(head) => {
+            let qn = net.critic_sa(head, &hd, &a_hat, true); // (B, L, C)
+            q_hat.amin(-1, false) + qn.mean_dim(-1, false, Kind::Float) * searching(batch)
+        }
+        None => q_hat.amin(-1, false),
+    }; // (B, L)
     let qc = net
         .critic_sa(&net.cost_critic, &hd, &a_hat, true)
         .mean_dim(-1, false, Kind::Float); // (B, L)
@@ -311,6 +370,7 @@ fn continuous_actor(
     ActorTerms {
         q_taken,
         qc_taken,
+        qn_taken,
         policy_loss: masked_mean(&objective, &batch.valid),
         entropy: masked_mean(&log_prob.neg(), &batch.valid),
         log_std_mean,

@@ -79,7 +79,9 @@
 //! until its first success (`novelty_bonus`, annealed over
 //! `novelty_anneal_updates`, rising with the episode index by
 //! `novelty_rise`; gated by the budget with `novelty_budget`:
-//! withheld past it, or scaled by the share of it left), the actor's
+//! withheld past it, or scaled by the share of it left; learned by critics
+//! of its own that the actor weighs only until its context holds a success,
+//! with `novelty_critic`), the actor's
 //! penalty at decision time,
 //! max(0, Qc - CTG_t), instead of Algorithm 1's hindsight flag
 //! (`penalty = "hinge"`), and no multiplier at all: once an episode has spent
@@ -110,7 +112,8 @@
 //! (whether the constraint acted in the round), `over_budget_price` (the
 //! excess price charged, 0 when none is), `entropy_coef`,
 //! `losses/value_loss`, `losses/cost_value_loss`, `losses/policy_loss`, `losses/entropy`, `losses/grad_norm`,
-//! `losses/goal_recall` (NaN without the head), `charts/epsilon`,
+//! `losses/goal_recall` (NaN without the head), `losses/novelty_q_mean` (the
+//! novelty critics' mean Q; NaN without them), `charts/epsilon`,
 //! `charts/updates_per_s`, `charts/env_steps_per_s`, `charts/cpu_learner` and
 //! (overlapped) `charts/cpu_actor` (the share of a core each thread kept busy
 //! since the start), `time/<phase>` and `time/actor/<phase>` (cumulative wall
@@ -363,6 +366,10 @@ impl Learner {
             log_std_mean: diag.log_std_mean.map_or(f64::NAN, |t| t.double_value(&[])),
             goal_recall_loss: diag
                 .goal_recall
+                .as_ref()
+                .map_or(f64::NAN, |t| t.double_value(&[])),
+            novelty_q_mean: diag
+                .novelty_q_mean
                 .as_ref()
                 .map_or(f64::NAN, |t| t.double_value(&[])),
         };
@@ -788,6 +795,7 @@ fn round_record(
         "losses/target_mean": avg(|s| s.target_mean),
         "losses/log_std_mean": avg(|s| s.log_std_mean),
         "losses/goal_recall": avg(|s| s.goal_recall_loss),
+        "losses/novelty_q_mean": avg(|s| s.novelty_q_mean),
         "charts/action_abs": round.action_abs,
         "charts/action_saturated": round.action_saturated,
         "charts/epsilon": learner.epsilon(),

@@ -1,6 +1,7 @@
 //! EPPO's networks, small parts first: what they read ([`NetSpec`]), an MLP
 //! head, the tanh-squashed Gaussian of continuous actions, and [`EppoNet`]
-//! (time-step encoder, shared transformer, actor, reward and cost critics).
+//! (time-step encoder, shared transformer, actor, reward and cost critics,
+//! optional novelty critics and goal-recall head).
 //! Variable names are the checkpoint format.
 
 use serde::{Deserialize, Serialize};
@@ -176,6 +177,9 @@ pub struct EppoNet {
     /// Discrete: (C * A) values from h. Continuous: C values from (h, a).
     pub(super) critic: Head,
     pub(super) cost_critic: Head,
+    /// With `novelty_critic`: the novelty bonus's own critics, shaped as
+    /// the reward critics.
+    pub(super) novelty_critic: Option<Head>,
     /// With `goal_recall_coef` > 0: the goal's position (2) from h.
     pub(super) goal_recall: Option<Head>,
     /// With `episode_positions`: a sinusoid table indexed by the step's
@@ -213,6 +217,14 @@ impl EppoNet {
             actor: Head::new(&p / "actor", d, cfg.head_hidden, actor_out),
             critic: Head::new(&p / "critic", critic_in, cfg.head_hidden, critic_out),
             cost_critic: Head::new(&p / "cost_critic", critic_in, cfg.head_hidden, critic_out),
+            novelty_critic: cfg.novelty_critic.then(|| {
+                Head::new(
+                    &p / "novelty_critic",
+                    critic_in,
+                    cfg.head_hidden,
+                    critic_out,
+                )
+            }),
             goal_recall: (cfg.goal_recall_coef > 0.0)
                 .then(|| Head::new(&p / "goal_recall", d, cfg.head_hidden, 2)),
             episode_sinusoid: cfg

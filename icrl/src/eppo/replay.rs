@@ -365,8 +365,12 @@ pub(super) struct Batch {
     /// (B, 2) each trajectory's goal position (relabelled where it was moved).
     pub(super) goal: Tensor,
     /// (B, L) 1 on real steps after the window's first success: the goal is
-    /// in the context there (the goal-recall loss).
+    /// in the context there (the goal-recall loss, the novelty critics'
+    /// weight in the actor).
     pub(super) goal_known: Tensor,
+    /// With `novelty_critic`: (B, L) the novelty bonus (scaled) that
+    /// `rewards` would otherwise carry, the novelty critics' reward.
+    pub(super) novelty_rewards: Option<Tensor>,
 }
 
 /// The critics' pretraining-only dense reward for step `step` of `t`:
@@ -451,6 +455,7 @@ pub(super) fn make_batch(
     let mut acts_f = Vec::with_capacity(b * l * a);
     let mut acts_i = Vec::with_capacity(b * l);
     let mut rew = vec![0f32; b * l];
+    let mut novelty_rew = vec![0f32; b * l];
     let mut cost = vec![0f32; b * l];
     let mut viol = vec![0f32; b * l];
     let mut ctg = vec![0f32; b * l];
@@ -528,19 +533,35 @@ pub(super) fn make_batch(
             };
             let rise = 1.0 + cfg.novelty_rise as f32 * t.episode[step] as f32;
             let novelty = shaping.novelty * novel[step] * share * rise;
-            let shaped = t.rewards[step] + dense + novelty;
-            let reward = match shaping.over_budget {
-                Some(o) if budget_spent => {
-                    let kept = if o.pays_novelty {
-                        shaped
-                    } else {
-                        shaped - novelty
-                    };
-                    o.replaced_reward.unwrap_or(kept) - o.cost_price * t.costs[step]
+            // The step's reward with `bonus` for novelty (nothing of it once
+            // the episode's budget is spent, unless the price leaves it).
+            let priced = |bonus: f32| {
+                let shaped = t.rewards[step] + dense + bonus;
+                match shaping.over_budget {
+                    Some(o) if budget_spent => {
+                        let kept = if o.pays_novelty {
+                            shaped
+                        } else {
+                            shaped - bonus
+                        };
+                        o.replaced_reward.unwrap_or(kept) - o.cost_price * t.costs[step]
+                    }
+                    _ => shaped,
                 }
-                _ => shaped,
             };
-            rew[k] = reward * cfg.reward_scale as f32;
+            let scale = cfg.reward_scale as f32;
+            if cfg.novelty_critic {
+                let paid = match shaping.over_budget {
+                    Some(o) if budget_spent && (o.replaced_reward.is_some() || !o.pays_novelty) => {
+                        0.0
+                    }
+                    _ => novelty,
+                };
+                rew[k] = priced(0.0) * scale;
+                novelty_rew[k] = paid * scale;
+            } else {
+                rew[k] = priced(novelty) * scale;
+            }
             cost[k] = t.costs[step];
             ctg[k] = t.ctg[step];
             viol[k] = if violated[t.episode[step] as usize] {
@@ -582,6 +603,7 @@ pub(super) fn make_batch(
             .view([bi, 2])
             .to_device(device),
         goal_known: f(&goal_known),
+        novelty_rewards: cfg.novelty_critic.then(|| f(&novelty_rew)),
     }
 }
 

@@ -410,6 +410,84 @@ fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
     assert_eq!(cfg.novelty_weight(5000), 0.0);
 }
 
+/// With novelty critics, the bonus a step's reward would carry moves into
+/// the novelty critics' reward, all of it and nothing else: under every
+/// over-budget rule the two rewards add up to the one critic's, and the
+/// tokens are the same.
+#[test]
+fn novelty_critics_take_the_bonus_out_of_the_reward_critics() {
+    let mut t = cell_walk();
+    // Step 2's arrival in (3,4) is new and spends the episode's budget.
+    t.costs[2] = 2.0;
+    let spec = NetSpec {
+        obs_dim: 2,
+        obs_low: vec![0.0; 2],
+        obs_high: vec![8.0; 2],
+        n_actions: Some(5),
+        act_low: vec![],
+        act_high: vec![],
+        ..Default::default()
+    };
+    let one = tiny();
+    let apart = EppoConfig {
+        novelty_critic: true,
+        novelty_bonus: 0.1,
+        ..tiny()
+    };
+    let batch = |cfg: &EppoConfig, over_budget: Option<OverBudget>| {
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let shaping = Shaping {
+            novelty: 0.1,
+            over_budget,
+        };
+        make_batch(&[&t], cfg, &spec, shaping, &mut rng, Device::Cpu)
+    };
+    assert!(batch(&one, None).novelty_rewards.is_none());
+    let scale = one.reward_scale as f32;
+    let priced = |replaced_reward, pays_novelty| {
+        Some(OverBudget {
+            replaced_reward,
+            cost_price: 1.0,
+            pays_novelty,
+        })
+    };
+    // (over-budget rule, the bonus paid at step 2)
+    let rules = [
+        (None, 0.1),
+        (priced(None, true), 0.1),
+        (priced(None, false), 0.0),
+        (priced(Some(-0.1), true), 0.0),
+    ];
+    for (rule, at_step_2) in rules {
+        let (shared, split) = (batch(&one, rule), batch(&apart, rule));
+        assert_eq!(to_vec(&shared.tokens), to_vec(&split.tokens));
+        let novelty = to_vec(split.novelty_rewards.as_ref().unwrap());
+        assert_eq!(
+            novelty,
+            [0.1, 0.0, at_step_2, 0.0, 0.1, 0.0, 0.0, 0.0].map(|b| b * scale),
+            "{rule:?}"
+        );
+        for ((s, r), n) in to_vec(&shared.rewards)
+            .iter()
+            .zip(to_vec(&split.rewards))
+            .zip(&novelty)
+        {
+            assert!(
+                (s - (r + n)).abs() < 1e-5,
+                "{rule:?}: {s} against {r} + {n}"
+            );
+        }
+    }
+    let mut off = apart.clone();
+    off.novelty_bonus = 0.0;
+    assert!(
+        off.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("novelty_critic")
+    );
+}
+
 #[test]
 fn new_cells_while_searching_counts_cells_first_entered_after_a_miss() {
     // cell_walk: episode 1 starts unfound and enters one new cell, (3,5),

@@ -81,6 +81,93 @@ fn goal_recall_counts_only_steps_after_a_success_and_falls() {
     assert_eq!(recall(&learner, &batch).0.double_value(&[]), 0.0);
 }
 
+/// The novelty critics: their TD loss is part of Lv, and the actor weighs
+/// their value only on steps whose context holds no success yet (shifting
+/// their values moves Lp there and nowhere else), for discrete and
+/// continuous actions alike; without `novelty_critic` there are none.
+#[test]
+fn the_actor_weighs_the_novelty_critics_only_before_a_success() {
+    assert!(tiny_learner(0).0.net.novelty_critic.is_none());
+    let mut cfg = EppoConfig {
+        novelty_critic: true,
+        novelty_bonus: 0.1,
+        ..tiny()
+    };
+    cfg.model.embd_dropout = 0.0;
+    let shaping = Shaping {
+        novelty: 0.1,
+        over_budget: None,
+    };
+    // A discrete learner on SafeDarkRoom's cells, and a continuous net.
+    let discrete = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+    let walk = cell_walk();
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let grid = make_batch(
+        &[&walk],
+        &cfg,
+        &discrete.spec,
+        shaping,
+        &mut rng,
+        Device::Cpu,
+    );
+    // Found at step 4: known from step 5 on.
+    assert_eq!(
+        to_vec(&grid.goal_known),
+        [0.0, 0.0, 0.0, 0.0, 0.0, 1.0, 1.0, 1.0]
+    );
+    let spec = NetSpec {
+        obs_dim: 2,
+        obs_low: vec![f32::NEG_INFINITY; 2],
+        obs_high: vec![f32::INFINITY; 2],
+        n_actions: None,
+        act_low: vec![-1.0; 5],
+        act_high: vec![1.0; 5],
+        ..Default::default()
+    };
+    let (vs, tvs) = (
+        nn::VarStore::new(Device::Cpu),
+        nn::VarStore::new(Device::Cpu),
+    );
+    let net = EppoNet::new(vs.root(), &cfg, &spec).unwrap();
+    let target = EppoNet::new(tvs.root(), &cfg, &spec).unwrap();
+    let mut rng = ChaCha8Rng::seed_from_u64(0);
+    let drive = make_batch(&[&walk], &cfg, &spec, shaping, &mut rng, Device::Cpu);
+    let cases = [
+        (&discrete.net, &discrete.target, &discrete.vs, grid),
+        (&net, &target, &vs, drive),
+    ];
+    for (net, target, vs, mut batch) in cases {
+        let run = |batch: &Batch| {
+            let (lv, _, lp, ..) = crate::torch_rng::seeded(7, || {
+                losses(net, target, batch, 0.0, cfg.entropy_coef, &cfg).unwrap()
+            });
+            (lv.double_value(&[]), lp.double_value(&[]))
+        };
+        let bias = &vs.variables()["novelty_critic.l3.bias"];
+        let shift = |by: f64| {
+            let _ = tch::no_grad(|| bias.shallow_clone().g_add_scalar_(by));
+        };
+        let (lv, _) = run(&batch);
+        let rewarded = batch
+            .novelty_rewards
+            .replace(Tensor::zeros_like(batch.novelty_rewards.as_ref().unwrap()));
+        assert_ne!(run(&batch).0, lv, "Lv holds the novelty critics' TD loss");
+        batch.novelty_rewards = rewarded;
+        for (known, moves) in [(1.0, false), (0.0, true)] {
+            batch.goal_known = batch.goal_known.ones_like() * known;
+            let before = run(&batch).1;
+            shift(5.0);
+            let after = run(&batch).1;
+            shift(-5.0);
+            assert_eq!(
+                before != after,
+                moves,
+                "goal known {known}: Lp {before} -> {after}"
+            );
+        }
+    }
+}
+
 /// SAC's temperature: the entropy weight rises while the policy's entropy is
 /// below its target and falls while above, stays fixed without a target, is
 /// logged, and a resumed run goes on from the checkpoint's weight.

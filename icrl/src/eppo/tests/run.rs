@@ -243,6 +243,47 @@ fn pretrain_end_to_end_checkpoints_resumes_and_loads() {
     std::fs::remove_dir_all(&out).unwrap();
 }
 
+/// A run with novelty critics logs their mean Q, checkpoints them (the
+/// manifest says so), loads for evaluation, and refuses a resume without them.
+#[test]
+fn a_run_with_novelty_critics_checkpoints_and_loads_them() {
+    let out = std::env::temp_dir().join(format!("icrl-eppo-novelty-{}", std::process::id()));
+    let cfg = EppoConfig {
+        novelty_critic: true,
+        novelty_bonus: 0.1,
+        ..tiny()
+    };
+    let opts = PretrainOptions {
+        env: EnvName::DarkRoom,
+        cfg: cfg.clone(),
+        out: out.clone(),
+        resume: None,
+        progress: false,
+    };
+    let report = train(&opts).unwrap();
+    let lines = std::fs::read_to_string(report.run_dir.join("metrics.jsonl")).unwrap();
+    let last: serde_json::Value = serde_json::from_str(lines.lines().last().unwrap()).unwrap();
+    assert!(last["losses/novelty_q_mean"].as_f64().unwrap().is_finite());
+    let ckpt = report.run_dir.join("checkpoints/step_4");
+    let manifest = std::fs::read_to_string(ckpt.join("manifest.json")).unwrap();
+    assert!(manifest.contains("novelty_critic"), "{manifest}");
+    let agent = EppoAgent::load(&ckpt, Device::Cpu).unwrap();
+    assert!(agent.config().novelty_critic);
+    let err = train(&PretrainOptions {
+        cfg: EppoConfig {
+            total_updates: 6,
+            ..tiny()
+        },
+        resume: Some(report.run_dir.clone()),
+        ..opts
+    })
+    .err()
+    .unwrap()
+    .to_string();
+    assert!(err.contains("manifest.json"), "{err}");
+    std::fs::remove_dir_all(&out).unwrap();
+}
+
 /// An overlapped run's metrics and final weights, less what depends on the
 /// machine's speed (rates, phase times, CPU shares).
 fn overlapped_run(seed: u64, out: &std::path::Path) -> (Vec<serde_json::Value>, Vec<u8>) {
