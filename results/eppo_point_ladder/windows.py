@@ -3,7 +3,7 @@ import json,sys,math
 # usage: python3 windows.py metrics.jsonl [window_updates (200)]
 path=sys.argv[1]; w=int(sys.argv[2]) if len(sys.argv)>2 else 200
 recs=[json.loads(l) for l in open(path)]
-keys=['revisit_rate','search_new_cells','episodic_return','last_episode_return','episodic_cost','losses/q_mean','charts/action_saturated','losses/entropy','entropy_coef','lambda']
+keys=['revisit_rate','search_new_cells','episodic_return','last_episode_return','episodic_cost','losses/q_mean','charts/action_saturated','losses/entropy','entropy_coef','lambda','losses/novelty_q_mean']
 print('upd_to  env_steps '+' '.join(k.split('/')[-1][:9].rjust(9) for k in keys))
 b=0
 while b < recs[-1]['updates']:
