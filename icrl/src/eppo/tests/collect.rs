@@ -354,15 +354,7 @@ fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
         vec![1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
     );
     // Into the critics' rewards only, at the weight given; tokens unchanged.
-    let spec = NetSpec {
-        obs_dim: 2,
-        obs_low: vec![0.0; 2],
-        obs_high: vec![8.0; 2],
-        n_actions: Some(5),
-        act_low: vec![],
-        act_high: vec![],
-        ..Default::default()
-    };
+    let spec = grid_spec();
     let cfg = tiny();
     let batch = |cfg: &EppoConfig, novelty: f32| {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
@@ -419,15 +411,7 @@ fn novelty_critics_take_the_bonus_out_of_the_reward_critics() {
     let mut t = cell_walk();
     // Step 2's arrival in (3,4) is new and spends the episode's budget.
     t.costs[2] = 2.0;
-    let spec = NetSpec {
-        obs_dim: 2,
-        obs_low: vec![0.0; 2],
-        obs_high: vec![8.0; 2],
-        n_actions: Some(5),
-        act_low: vec![],
-        act_high: vec![],
-        ..Default::default()
-    };
+    let spec = grid_spec();
     let one = tiny();
     let apart = EppoConfig {
         novelty_critic: true,

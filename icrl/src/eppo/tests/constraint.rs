@@ -12,14 +12,7 @@ fn overspent_walk() -> (Trajectory, NetSpec) {
     t.costs = vec![0.0, 1.0, 1.0, 2.0, 0.0, 0.0, 0.0, 0.0];
     t.ctg = vec![1.0, 1.0, 0.0, 1.0, -1.0, 1.0, 1.0, 1.0];
     t.episode_costs = vec![2.0, 2.0, 0.0];
-    let spec = NetSpec {
-        obs_dim: 2,
-        obs_low: vec![0.0; 2],
-        obs_high: vec![8.0; 2],
-        n_actions: Some(5),
-        ..Default::default()
-    };
-    (t, spec)
+    (t, grid_spec())
 }
 
 /// A config whose over-budget price (`form`, 2 per unit of cost) starts at

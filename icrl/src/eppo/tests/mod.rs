@@ -172,6 +172,18 @@ fn cell_walk() -> Trajectory {
     }
 }
 
+/// The network's view of [`cell_walk`]: positions on SafeDarkRoom's 9x9
+/// grid, its 5 actions.
+fn grid_spec() -> NetSpec {
+    NetSpec {
+        obs_dim: 2,
+        obs_low: vec![0.0; 2],
+        obs_high: vec![8.0; 2],
+        n_actions: Some(5),
+        ..Default::default()
+    }
+}
+
 /// A batch of `trajs` whose critics see the collected rewards only.
 fn unshaped_batch(
     trajs: &[&Trajectory],
