@@ -276,13 +276,10 @@ fn discrete_actor(
     let logits = net.actor.forward(&actor_input(h, cfg)); // (B, L, A)
     let logp = logits.log_softmax(-1, Kind::Float);
     let pi = logp.exp();
-    let q = match &qn_all {
-        Some(qn) => {
-            q_all.detach().amin(2, false)
-                + qn.detach().mean_dim(2, false, Kind::Float) * searching(batch).unsqueeze(-1)
-        }
-        None => q_all.detach().amin(2, false),
-    }; // (B, L, A)
+    let mut q = q_all.detach().amin(2, false); // (B, L, A)
+    if let Some(qn) = &qn_all {
+        q += qn.detach().mean_dim(2, false, Kind::Float) * searching(batch).unsqueeze(-1);
+    }
     let qc = qc_all.detach().mean_dim(2, false, Kind::Float); // (B, L, A)
     let penalty = lambda * cfg.reward_scale;
     let paid = penalised_cost(
@@ -343,6 +340,7 @@ fn continuous_actor(
     // encoder through the actor's input).
     let hd = h.detach();
     let q_hat = net.critic_sa(&net.critic, &hd, &a_hat, true); // (B, L, C)
+    // Not `+=` (in place): amin's backward still needs its output.
     let q = match &net.novelty_critic {
         Some(head) => {
             let qn = net.critic_sa(head, &hd, &a_hat, true); // (B, L, C)
