@@ -297,6 +297,14 @@ pub struct EppoConfig {
     /// (ps3, ps5, ps7, dn1). After RND's separate intrinsic value head.
     #[serde(default)]
     pub novelty_critic: bool,
+    /// The novelty critics' reward pays the over-budget price too (`penalty =
+    /// "excess"` or `"saute"`): each unit of cost past the episode's budget
+    /// takes the price off the search value as well. With the price in the
+    /// task critics alone, it drove their Q to 0 while the novelty Q stayed
+    /// whole, so before a success the actor searched at any cost (Point,
+    /// results/eppo_point_ladder, pc4).
+    #[serde(default)]
+    pub novelty_pays_price: bool,
     /// How the episode's budget gates the novelty bonus (issue 18). Paid
     /// everywhere, the bonus let search ignore the budget
     /// (results/eppo_darkroom_budget, ex4). Older configs'
@@ -723,6 +731,15 @@ impl EppoConfig {
             return bad(
                 "novelty_critic learns the novelty bonus's value, which is off (novelty_bonus = \
                  0): set novelty_bonus > 0, or drop novelty_critic"
+                    .to_string(),
+            );
+        }
+        if self.novelty_pays_price
+            && !(self.novelty_critic
+                && matches!(self.penalty, PenaltyForm::Excess | PenaltyForm::Saute))
+        {
+            return bad(
+                "novelty_pays_price charges the novelty critics the over-budget price: it needs                  novelty_critic = true and penalty = \"excess\" or \"saute\" (the forms that                  price cost in the critics' reward); set them, or drop novelty_pays_price"
                     .to_string(),
             );
         }

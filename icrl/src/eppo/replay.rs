@@ -369,7 +369,8 @@ pub(super) struct Batch {
     /// weight in the actor).
     pub(super) goal_known: Tensor,
     /// With `novelty_critic`: (B, L) the novelty bonus (scaled) that
-    /// `rewards` would otherwise carry, the novelty critics' reward.
+    /// `rewards` would otherwise carry, the novelty critics' reward (less
+    /// the over-budget price with `novelty_pays_price`).
     pub(super) novelty_rewards: Option<Tensor>,
 }
 
@@ -557,8 +558,14 @@ pub(super) fn make_batch(
                     }
                     _ => novelty,
                 };
+                let charged = match shaping.over_budget {
+                    Some(o) if budget_spent && cfg.novelty_pays_price => {
+                        o.cost_price * t.costs[step]
+                    }
+                    _ => 0.0,
+                };
                 rew[k] = priced(0.0) * scale;
-                novelty_rew[k] = paid * scale;
+                novelty_rew[k] = (paid - charged) * scale;
             } else {
                 rew[k] = priced(novelty) * scale;
             }

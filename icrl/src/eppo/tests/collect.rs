@@ -462,6 +462,48 @@ fn novelty_critics_take_the_bonus_out_of_the_reward_critics() {
             );
         }
     }
+    // Paying the price, the novelty critics lose it on step 2's two units
+    // of cost past the budget and the reward critics keep theirs.
+    let paying = EppoConfig {
+        novelty_pays_price: true,
+        ..apart.clone()
+    };
+    for (rule, at_step_2) in rules {
+        let (split, paid) = (batch(&apart, rule), batch(&paying, rule));
+        assert_eq!(to_vec(&split.rewards), to_vec(&paid.rewards), "{rule:?}");
+        let charged = if rule.is_some() { 2.0 } else { 0.0 };
+        assert_eq!(
+            to_vec(paid.novelty_rewards.as_ref().unwrap()),
+            [0.1, 0.0, at_step_2 - charged, 0.0, 0.1, 0.0, 0.0, 0.0].map(|b| b * scale),
+            "{rule:?}"
+        );
+    }
+    for (cfg, needs) in [
+        (
+            EppoConfig {
+                novelty_critic: false,
+                ..paying.clone()
+            },
+            "novelty_critic",
+        ),
+        (
+            EppoConfig {
+                penalty: PenaltyForm::Hinge,
+                ..paying.clone()
+            },
+            "penalty",
+        ),
+    ] {
+        let e = cfg.validate().unwrap_err().to_string();
+        assert!(e.contains("novelty_pays_price") && e.contains(needs), "{e}");
+    }
+    let excess = EppoConfig {
+        penalty: PenaltyForm::Excess,
+        over_budget_cost_price: 1.0,
+        lambda_lr: 0.0,
+        ..paying.clone()
+    };
+    excess.validate().unwrap();
     let mut off = apart.clone();
     off.novelty_bonus = 0.0;
     assert!(
