@@ -11,18 +11,22 @@ use std::path::Path;
 
 use tch::{Kind, Tensor, nn::VarStore};
 
-/// A loss or gradient norm that is NaN or infinite: the step was not taken.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum NonFinite {
+/// Why a step was not taken: a loss or gradient norm that is NaN or
+/// infinite, or libtorch's error from the backward pass (reported, never a
+/// panic).
+#[derive(Clone, Debug, PartialEq)]
+pub enum StepRefused {
     Loss(f64),
     Gradient(f64),
+    Backward(String),
 }
 
-impl std::fmt::Display for NonFinite {
+impl std::fmt::Display for StepRefused {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            NonFinite::Loss(v) => write!(f, "the loss is {v}"),
-            NonFinite::Gradient(v) => write!(f, "the gradient norm is {v}"),
+            StepRefused::Loss(v) => write!(f, "the loss is {v}"),
+            StepRefused::Gradient(v) => write!(f, "the gradient norm is {v}"),
+            StepRefused::Backward(e) => write!(f, "libtorch's backward pass failed: {e}"),
         }
     }
 }
@@ -107,29 +111,30 @@ impl Adam {
     }
 
     /// [`Adam::backward_step`] that refuses to step when the loss or the
-    /// gradient norm is NaN or infinite: the parameters and moments stay as
-    /// they were, and the error says which was not finite.
-    pub fn try_backward_step(&mut self, loss: &Tensor) -> Result<f64, NonFinite> {
+    /// gradient norm is NaN or infinite, or libtorch's backward pass fails:
+    /// the parameters and moments stay as they were, and the error says why.
+    pub fn try_backward_step(&mut self, loss: &Tensor) -> Result<f64, StepRefused> {
         self.try_backward(loss)?;
         self.try_step()
     }
 
     /// The first half of [`Adam::try_backward_step`]: backpropagates `loss`
-    /// into cleared gradients, refusing a loss that is not finite.
-    pub fn try_backward(&mut self, loss: &Tensor) -> Result<(), NonFinite> {
+    /// into cleared gradients, refusing a loss that is not finite and
+    /// returning libtorch's error from the pass instead of panicking.
+    pub fn try_backward(&mut self, loss: &Tensor) -> Result<(), StepRefused> {
         let loss_value = loss.double_value(&[]);
         if !loss_value.is_finite() {
-            return Err(NonFinite::Loss(loss_value));
+            return Err(StepRefused::Loss(loss_value));
         }
         self.zero_grad();
-        loss.backward();
-        Ok(())
+        loss.f_backward()
+            .map_err(|e| StepRefused::Backward(e.to_string()))
     }
 
     /// The second half: clips the gradients [`Adam::try_backward`] left and
     /// takes the Adam step; returns the norm before clipping, or refuses
     /// (clearing them) when it is not finite.
-    pub fn try_step(&mut self) -> Result<f64, NonFinite> {
+    pub fn try_step(&mut self) -> Result<f64, StepRefused> {
         let grads: Vec<Tensor> = self.params.iter().map(|(_, p, _, _)| p.grad()).collect();
         let defined: Vec<&Tensor> = grads.iter().filter(|g| g.defined()).collect();
         let norm = if defined.is_empty() {
@@ -146,7 +151,7 @@ impl Adam {
         };
         if !norm.is_finite() {
             self.zero_grad();
-            return Err(NonFinite::Gradient(norm));
+            return Err(StepRefused::Gradient(norm));
         }
         let scale = match self.cfg.grad_clip {
             Some(c) if c > 0.0 && norm > c => c / (norm + 1e-6),
@@ -276,13 +281,13 @@ mod tests {
         let e = opt
             .try_backward_step(&(x.sum(Kind::Float) * f64::NAN))
             .unwrap_err();
-        assert!(matches!(e, NonFinite::Loss(v) if v.is_nan()), "{e}");
+        assert!(matches!(e, StepRefused::Loss(v) if v.is_nan()), "{e}");
         // sqrt at 0: the loss is 0 but its gradient is infinite.
         let e = opt
             .try_backward_step(&x.sqrt().sum(Kind::Float))
             .unwrap_err();
         assert!(
-            matches!(e, NonFinite::Gradient(v) if v.is_infinite()),
+            matches!(e, StepRefused::Gradient(v) if v.is_infinite()),
             "{e}"
         );
         assert_eq!(e.to_string(), "the gradient norm is inf");
@@ -292,6 +297,30 @@ mod tests {
             opt.try_backward_step(&(&x - 1.0).square().sum(Kind::Float))
                 .is_ok()
         );
+    }
+
+    #[test]
+    fn a_backward_pass_that_libtorch_refuses_is_an_error_not_a_panic() {
+        let vs = nn::VarStore::new(Device::Cpu);
+        let x = vs.root().var("x", &[2], nn::Init::Const(0.0));
+        let cfg = AdamConfig {
+            lr: 0.1,
+            beta1: 0.9,
+            beta2: 0.99,
+            eps: 1e-8,
+            grad_clip: None,
+        };
+        let mut opt = Adam::new(&vs, cfg);
+        // A loss cut off from the parameters: libtorch finds no grad_fn.
+        let e = opt
+            .try_backward_step(&x.detach().sum(Kind::Float))
+            .unwrap_err();
+        assert!(
+            matches!(&e, StepRefused::Backward(m) if m.contains("grad")),
+            "{e}"
+        );
+        assert!(e.to_string().starts_with("libtorch's backward pass failed"));
+        assert_eq!(opt.step_count(), 0, "no step was taken");
     }
 
     #[test]

@@ -528,7 +528,8 @@ pub enum EppoError {
     Torch(#[from] tch::TchError),
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
-    /// A loss or gradient became NaN or infinite: the update was not applied.
+    /// A loss or gradient became NaN or infinite, or libtorch's backward
+    /// pass failed: the update was not applied.
     #[error(
         "update {update}: {what}; training stopped without applying it. {}",
         crate::checkpoint::last_good(.checkpoint, "lower lr, or check the settings")

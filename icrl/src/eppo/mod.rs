@@ -326,7 +326,7 @@ impl Learner {
         self.times.forward += lap(&mut clock);
         // A NaN or infinite loss or gradient is never applied: the weights
         // stay those of the last good update and `train` stops with this.
-        let non_finite = |e: crate::optim::NonFinite| EppoError::NonFinite {
+        let non_finite = |e: crate::optim::StepRefused| EppoError::NonFinite {
             update: self.updates + 1,
             what: format!(
                 "{e} (value loss {:.4e}, cost value loss {:.4e}, policy loss {:.4e})",
