@@ -305,6 +305,14 @@ pub struct EppoConfig {
     /// results/eppo_point_ladder, pc4).
     #[serde(default)]
     pub novelty_pays_price: bool,
+    /// The novelty critics' reward goes on past the trajectory's first
+    /// success (the actor no longer weighs them there). Cut at the success,
+    /// their value drops where a goal is reached, so before a success the
+    /// actor is paid to keep searching rather than to take a goal it meets:
+    /// on Car the novelty Q was 8 times the task Q and the return flat at
+    /// 0.19 (results/eppo_car_ladder, cs6).
+    #[serde(default)]
+    pub novelty_through_success: bool,
     /// How the episode's budget gates the novelty bonus (issue 18). Paid
     /// everywhere, the bonus let search ignore the budget
     /// (results/eppo_darkroom_budget, ex4). Older configs'
@@ -732,6 +740,14 @@ impl EppoConfig {
             return bad(
                 "novelty_critic learns the novelty bonus's value, which is off (novelty_bonus = \
                  0): set novelty_bonus > 0, or drop novelty_critic"
+                    .to_string(),
+            );
+        }
+        if self.novelty_through_success && !self.novelty_critic {
+            return bad(
+                "novelty_through_success pays the novelty bonus past the first success, which \
+                 only the novelty critics may learn (in the reward critics it would tax the \
+                 revisits): set novelty_critic = true, or drop novelty_through_success"
                     .to_string(),
             );
         }

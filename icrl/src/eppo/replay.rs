@@ -398,9 +398,15 @@ pub(crate) fn position_cell(obs: &[f32], side: f64) -> (i64, i64) {
 
 /// For each step of `t`, 1 where it arrives in a cell (side `cell`, on the
 /// position at observation indices 0 and 1) that the trajectory has not been
-/// in before, episode starts included, up to its first success; 0 elsewhere
-/// and after it. The novelty bonus's indicator ([`EppoConfig::novelty_bonus`]).
-pub(super) fn novel_arrivals(t: &Trajectory, obs_dim: usize, cell: f64) -> Vec<f32> {
+/// in before, episode starts included, up to its first success (0 after it,
+/// unless `through_success`); 0 elsewhere. The novelty bonus's indicator
+/// ([`EppoConfig::novelty_bonus`]).
+pub(super) fn novel_arrivals(
+    t: &Trajectory,
+    obs_dim: usize,
+    cell: f64,
+    through_success: bool,
+) -> Vec<f32> {
     let key = |o: &[f32]| position_cell(o, cell);
     let mut seen = HashSet::new();
     let mut novel = vec![0f32; t.len()];
@@ -409,7 +415,7 @@ pub(super) fn novel_arrivals(t: &Trajectory, obs_dim: usize, cell: f64) -> Vec<f
         if seen.insert(key(&t.next_obs[step * obs_dim..])) {
             *flag = 1.0;
         }
-        if t.rewards[step] > 0.0 {
+        if t.rewards[step] > 0.0 && !through_success {
             break;
         }
     }
@@ -470,7 +476,12 @@ pub(super) fn make_batch(
     for (j, (t, &(s, len))) in trajs.iter().zip(&windows).enumerate() {
         let violated: Vec<bool> = t.episode_costs.iter().map(|&c| c > t.budget).collect();
         let novel = if shaping.novelty > 0.0 {
-            novel_arrivals(t, spec.obs_dim, cfg.novelty_cell)
+            novel_arrivals(
+                t,
+                spec.obs_dim,
+                cfg.novelty_cell,
+                cfg.novelty_through_success,
+            )
         } else {
             vec![0.0; t.len()]
         };

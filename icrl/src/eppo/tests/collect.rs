@@ -343,14 +343,14 @@ fn noise_drops_to_its_ceiling_once_the_goal_is_found() {
 fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
     let t = cell_walk();
     assert_eq!(
-        novel_arrivals(&t, 2, 1.0),
+        novel_arrivals(&t, 2, 1.0, false),
         // new (4,5); seen (4,4); new (3,4); seen (4,5); new (3,5), the goal;
         // nothing after the first success, new cells included.
         vec![1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0]
     );
     // Coarser cells (side 2) hold (3,4) with (4,4) and (3,5) with (4,5).
     assert_eq!(
-        novel_arrivals(&t, 2, 2.0),
+        novel_arrivals(&t, 2, 2.0, false),
         vec![1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
     );
     // Into the critics' rewards only, at the weight given; tokens unchanged.
@@ -504,6 +504,25 @@ fn novelty_critics_take_the_bonus_out_of_the_reward_critics() {
         ..paying.clone()
     };
     excess.validate().unwrap();
+    // Through the success, the novelty critics are paid for the new cells
+    // of episode 2 too, (5,4) at step 5 and (3,3) at step 7; the reward
+    // critics, which the actor follows after a success, are not.
+    let through = EppoConfig {
+        novelty_through_success: true,
+        ..apart.clone()
+    };
+    let (split, past) = (batch(&apart, None), batch(&through, None));
+    assert_eq!(to_vec(&split.rewards), to_vec(&past.rewards));
+    assert_eq!(
+        to_vec(past.novelty_rewards.as_ref().unwrap()),
+        [0.1, 0.0, 0.1, 0.0, 0.1, 0.1, 0.0, 0.1].map(|b| b * scale)
+    );
+    let shared = EppoConfig {
+        novelty_critic: false,
+        ..through.clone()
+    };
+    let e = shared.validate().unwrap_err().to_string();
+    assert!(e.contains("novelty_through_success"), "{e}");
     let mut off = apart.clone();
     off.novelty_bonus = 0.0;
     assert!(
