@@ -245,17 +245,22 @@ mod tests {
     use super::*;
     use tch::{Device, nn};
 
-    #[test]
-    fn adam_minimises_a_quadratic_and_clips() {
-        let vs = nn::VarStore::new(Device::Cpu);
-        let x = vs.root().var("x", &[3], nn::Init::Const(5.0));
-        let cfg = AdamConfig {
+    /// The tests' Adam: lr 0.1, the usual betas and eps.
+    fn config(grad_clip: Option<f64>) -> AdamConfig {
+        AdamConfig {
             lr: 0.1,
             beta1: 0.9,
             beta2: 0.99,
             eps: 1e-8,
-            grad_clip: Some(1.0),
-        };
+            grad_clip,
+        }
+    }
+
+    #[test]
+    fn adam_minimises_a_quadratic_and_clips() {
+        let vs = nn::VarStore::new(Device::Cpu);
+        let x = vs.root().var("x", &[3], nn::Init::Const(5.0));
+        let cfg = config(Some(1.0));
         let mut opt = Adam::new(&vs, cfg);
         let first = opt.backward_step(&x.square().sum(Kind::Float));
         // Gradient 2x = 10 per entry: norm sqrt(300) before clipping.
@@ -270,13 +275,7 @@ mod tests {
     fn a_non_finite_loss_or_gradient_takes_no_step() {
         let vs = nn::VarStore::new(Device::Cpu);
         let x = vs.root().var("x", &[2], nn::Init::Const(0.0));
-        let cfg = AdamConfig {
-            lr: 0.1,
-            beta1: 0.9,
-            beta2: 0.99,
-            eps: 1e-8,
-            grad_clip: Some(1.0),
-        };
+        let cfg = config(Some(1.0));
         let mut opt = Adam::new(&vs, cfg);
         let e = opt
             .try_backward_step(&(x.sum(Kind::Float) * f64::NAN))
@@ -303,13 +302,7 @@ mod tests {
     fn a_backward_pass_that_libtorch_refuses_is_an_error_not_a_panic() {
         let vs = nn::VarStore::new(Device::Cpu);
         let x = vs.root().var("x", &[2], nn::Init::Const(0.0));
-        let cfg = AdamConfig {
-            lr: 0.1,
-            beta1: 0.9,
-            beta2: 0.99,
-            eps: 1e-8,
-            grad_clip: None,
-        };
+        let cfg = config(None);
         let mut opt = Adam::new(&vs, cfg);
         // A loss cut off from the parameters: libtorch finds no grad_fn.
         let e = opt
@@ -329,13 +322,7 @@ mod tests {
         std::fs::create_dir_all(&dir).unwrap();
         let vs = nn::VarStore::new(Device::Cpu);
         let x = vs.root().var("x", &[2], nn::Init::Const(1.0));
-        let cfg = AdamConfig {
-            lr: 0.1,
-            beta1: 0.9,
-            beta2: 0.99,
-            eps: 1e-8,
-            grad_clip: None,
-        };
+        let cfg = config(None);
         let mut a = Adam::new(&vs, cfg);
         a.backward_step(&x.square().sum(Kind::Float));
         a.save(&dir.join("o.safetensors")).unwrap();
