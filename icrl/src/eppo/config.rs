@@ -756,7 +756,9 @@ impl EppoConfig {
                 && matches!(self.penalty, PenaltyForm::Excess | PenaltyForm::Saute))
         {
             return bad(
-                "novelty_pays_price charges the novelty critics the over-budget price: it needs                  novelty_critic = true and penalty = \"excess\" or \"saute\" (the forms that                  price cost in the critics' reward); set them, or drop novelty_pays_price"
+                "novelty_pays_price charges the novelty critics the over-budget price: it needs \
+                 novelty_critic = true and penalty = \"excess\" or \"saute\" (the forms that \
+                 price cost in the critics' reward); set them, or drop novelty_pays_price"
                     .to_string(),
             );
         }
