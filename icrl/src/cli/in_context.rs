@@ -27,13 +27,18 @@ const MAX_EPISODES: usize = 20;
 /// The check's evaluation seed: fixed, so reruns compare.
 const SEED: u64 = 20_261_201;
 
-/// Per episode index: mean return, mean cost, revisit rate, and the cells
-/// first entered by the trajectories still searching (each NaN where no
-/// trajectory had found the goal before k, or none was still searching).
+/// One value per `[condition][task][episode]`, as [`EvalResult`] holds them.
+type ByEpisode<T> = [Vec<Vec<T>>];
+
+/// Per episode index: mean return, mean cost, the mean cost paid again
+/// (near a cost of an earlier episode), revisit rate, and the cells first
+/// entered by the trajectories still searching (each NaN where no trajectory
+/// had found the goal before k, or none was still searching).
 #[derive(Clone, Debug, PartialEq)]
 pub struct PerEpisode {
     pub ret: Vec<f64>,
     pub cost: Vec<f64>,
+    pub repeat_cost: Vec<f64>,
     pub revisit: Vec<f64>,
     pub search_new_cells: Vec<f64>,
 }
@@ -44,39 +49,43 @@ impl PerEpisode {
         Self::from_parts(
             r.episodes,
             &r.returns,
-            &r.costs,
+            (&r.costs, &r.repeat_costs),
             &r.reached_goal,
             &r.new_cells,
         )
     }
 
-    /// The same from `[condition][task][episode]` returns, costs, goals and
-    /// cells first entered.
+    /// The same from `[condition][task][episode]` returns, costs (all of
+    /// them, and those paid again), goals and cells first entered.
     pub fn from_parts(
         k_n: usize,
-        returns: &[Vec<Vec<f32>>],
-        costs: &[Vec<Vec<f32>>],
-        reached_goal: &[Vec<Vec<bool>>],
-        new_cells: &[Vec<Vec<u32>>],
+        returns: &ByEpisode<f32>,
+        (costs, repeat_costs): (&ByEpisode<f32>, &ByEpisode<f32>),
+        reached_goal: &ByEpisode<bool>,
+        new_cells: &ByEpisode<u32>,
     ) -> Self {
         let trajectories = || {
             returns
                 .iter()
-                .zip(costs)
+                .zip(costs.iter().zip(repeat_costs))
                 .zip(reached_goal)
                 .zip(new_cells)
-                .flat_map(|(((ret, cost), goal), cells)| ret.iter().zip(cost).zip(goal).zip(cells))
+                .flat_map(|(((ret, (cost, again)), goal), cells)| {
+                    ret.iter().zip(cost.iter().zip(again)).zip(goal).zip(cells)
+                })
         };
         let (mut ret, mut cost) = (vec![0.0; k_n], vec![0.0; k_n]);
+        let mut repeat_cost = vec![0.0; k_n];
         let (mut revisits, mut found_before) = (vec![0usize; k_n], vec![0usize; k_n]);
         let (mut cells, mut searching) = (vec![0u32; k_n], vec![0usize; k_n]);
         let mut n = 0usize;
-        for (((rets, costs), goals), entered) in trajectories() {
+        for (((rets, (costs, again)), goals), entered) in trajectories() {
             n += 1;
             let mut seen = false;
             for k in 0..k_n {
                 ret[k] += f64::from(rets[k]);
                 cost[k] += f64::from(costs[k]);
+                repeat_cost[k] += f64::from(again[k]);
                 if seen {
                     found_before[k] += 1;
                     revisits[k] += usize::from(goals[k]);
@@ -92,6 +101,7 @@ impl PerEpisode {
         PerEpisode {
             ret: ret.iter().map(|x| x / n).collect(),
             cost: cost.iter().map(|x| x / n).collect(),
+            repeat_cost: repeat_cost.iter().map(|x| x / n).collect(),
             revisit: (0..k_n)
                 .map(|k| ratio(revisits[k] as f64, found_before[k]))
                 .collect(),
@@ -138,6 +148,7 @@ pub fn check(checkpoint: &Path, env: EnvName) -> Result<String, EvalCmdError> {
         torch_seed: Some(SEED),
         orientation: Orientation::Edge,
         search_cell: crate::eval::search_cell(env),
+        repeat_radius: crate::eval::repeat_radius(env),
     };
     let spawn = spawn_config(env);
     let trained = evaluate(agent.agent.as_mut(), &make, &spawn, &cfg, &mut |_| {})?;
@@ -162,7 +173,7 @@ fn table(agent: &PerEpisode, random: &PerEpisode, budgets: &[f32]) -> String {
     );
     let _ = writeln!(
         s,
-        "   k  return          cost            revisit       new cells while searching"
+        "   k  return          cost            paid again      revisit       new cells while searching"
     );
     let shown = |x: f64, decimals: usize| {
         if x.is_nan() {
@@ -174,12 +185,14 @@ fn table(agent: &PerEpisode, random: &PerEpisode, budgets: &[f32]) -> String {
     for k in 0..agent.ret.len() {
         let _ = writeln!(
             s,
-            "  {:>2}  {:.3} ({:.3})   {:>5.2} ({:>5.2})   {} ({})   {} ({})",
+            "  {:>2}  {:.3} ({:.3})   {:>5.2} ({:>5.2})   {:>5.2} ({:>5.2})   {} ({})   {} ({})",
             k + 1,
             agent.ret[k],
             random.ret[k],
             agent.cost[k],
             random.cost[k],
+            agent.repeat_cost[k],
+            random.repeat_cost[k],
             shown(agent.revisit[k], 2),
             shown(random.revisit[k], 2),
             shown(agent.search_new_cells[k], 1),
@@ -199,12 +212,16 @@ mod tests {
         let p = PerEpisode::from_parts(
             3,
             &[vec![vec![1.0, 0.0, 1.0], vec![0.0, 0.0, 0.0]]],
-            &[vec![vec![2.0, 1.0, 0.0], vec![4.0, 3.0, 2.0]]],
+            (
+                &[vec![vec![2.0, 1.0, 0.0], vec![4.0, 3.0, 2.0]]],
+                &[vec![vec![0.0, 1.0, 0.0], vec![0.0, 2.0, 0.0]]],
+            ),
             &[vec![vec![true, false, true], vec![false, false, false]]],
             &[vec![vec![5, 1, 0], vec![7, 3, 0]]],
         );
         assert_eq!(p.ret, [0.5, 0.0, 0.5]);
         assert_eq!(p.cost, [3.0, 2.0, 1.0]);
+        assert_eq!(p.repeat_cost, [0.0, 1.5, 0.0]);
         assert!(p.revisit[0].is_nan(), "nothing found before k = 1");
         assert_eq!(&p.revisit[1..], [0.0, 1.0]);
         // New cells over the trajectories still searching: both at k = 1,

@@ -14,7 +14,7 @@ use safety_envs::{EnvName, Orientation, VecAction, VecEnv, sample_task, spawn_co
 use super::Learner;
 use super::config::{EppoConfig, EppoError};
 use super::net::{EppoNet, NetSpec};
-use super::replay::{Trajectory, novel_arrivals, push_token};
+use super::replay::{Trajectory, novel_arrivals, push_token, repeated_costs};
 use super::timing::PhaseTimes;
 use crate::agent::StepInput;
 use crate::model::KvCache;
@@ -40,6 +40,9 @@ pub struct RoundStats {
     /// Cells first entered per episode after the first, over the episodes
     /// that start with the goal not yet found ([`new_cells_while_searching`]).
     pub search_new_cells: f64,
+    /// Mean cost per episode paid again ([`CostMemory`](super::replay::CostMemory), the evaluation's
+    /// `repeat_cost`): what the context could have spared.
+    pub repeat_cost: f64,
     /// Continuous actions: mean |a| of the collected actions (in [-1, 1])
     /// and the fraction with |a| > 0.99; NaN for discrete actions.
     pub action_abs: f64,
@@ -125,7 +128,12 @@ pub(super) fn mean(xs: impl Iterator<Item = f64>) -> f64 {
 type RoundDraws = (Vec<f32>, Vec<usize>, Vec<f64>);
 
 /// What a round of `steps` environment steps gathered in `trajs`.
-fn round_stats(trajs: &[Trajectory], steps: u64, spec: &NetSpec, cell: f64) -> RoundStats {
+fn round_stats(
+    trajs: &[Trajectory],
+    steps: u64,
+    spec: &NetSpec,
+    (cell, repeat_radius): (f64, f64),
+) -> RoundStats {
     let discrete = spec.n_actions.is_some();
     let (discovery_rate, revisit_rate, found) =
         search_rates(trajs.iter().map(|t| t.episode_success.as_slice()));
@@ -149,6 +157,18 @@ fn round_stats(trajs: &[Trajectory], steps: u64, spec: &NetSpec, cell: f64) -> R
         revisit_rate,
         found,
         search_new_cells: new_cells_while_searching(trajs, spec.obs_dim, cell),
+        repeat_cost: {
+            let again = trajs.iter().flat_map(|t| {
+                let repeated = repeated_costs(t, spec.obs_dim, repeat_radius);
+                t.costs
+                    .iter()
+                    .zip(repeated)
+                    .filter(|r| r.1)
+                    .map(|r| f64::from(*r.0))
+            });
+            let episodes: usize = trajs.iter().map(|t| t.episode_costs.len()).sum();
+            again.sum::<f64>() / episodes.max(1) as f64
+        },
         trajectories: trajs.len(),
         steps,
         mean_return: mean(
@@ -359,7 +379,8 @@ impl Collector<'_> {
             }
         }
         *self.env_steps += steps;
-        let stats = round_stats(&trajs, steps, self.spec, self.cfg.novelty_cell);
+        let radii = (self.cfg.novelty_cell, crate::eval::repeat_radius(self.env));
+        let stats = round_stats(&trajs, steps, self.spec, radii);
         Ok((trajs, stats))
     }
 

@@ -354,6 +354,19 @@ pub struct EppoConfig {
     /// (0.88 -> 0.56 on seed 1 after the step to 3.0, dw2s).
     #[serde(default)]
     pub over_budget_price_ramp: bool,
+    /// `penalty = "excess"`: when > 0, the price falls only on repeated
+    /// costs, those paid within this distance (of the position at
+    /// observation indices 0 and 1) of where the trajectory paid a cost in
+    /// an earlier episode; costs met for the first time stay free. With the
+    /// lidar off, a robot learns where the hazards are only by entering
+    /// them, and pricing those first costs priced search: return fell and
+    /// cost did not (Point, pc1-pc6). Yet 77% of the cost ps9 paid at
+    /// episode 10 was in hazards it had paid for earlier in the same
+    /// trajectory (results/eppo_point_ladder): that is the cost an
+    /// in-context learner can avoid. 0.4 (a hazard's diameter) tells a
+    /// repeat from a new hazard on the robots. 0: every cost (the paper).
+    #[serde(default)]
+    pub repeat_cost_radius: f64,
     /// What the multiplier integrates on each sampled trajectory (issue 18).
     #[serde(default)]
     pub violation_signal: ViolationSignal,
@@ -759,6 +772,21 @@ impl EppoConfig {
                 "novelty_pays_price charges the novelty critics the over-budget price: it needs \
                  novelty_critic = true and penalty = \"excess\" or \"saute\" (the forms that \
                  price cost in the critics' reward); set them, or drop novelty_pays_price"
+                    .to_string(),
+            );
+        }
+        if !(self.repeat_cost_radius.is_finite() && self.repeat_cost_radius >= 0.0) {
+            return bad(format!(
+                "repeat_cost_radius must be a finite distance >= 0 (0: the price falls on every \
+                 cost), got {}",
+                self.repeat_cost_radius
+            ));
+        }
+        if self.repeat_cost_radius > 0.0 && self.penalty != PenaltyForm::Excess {
+            return bad(
+                "repeat_cost_radius > 0 narrows the over-budget price of penalty = \"excess\" to \
+                 repeated costs: set penalty = \"excess\" (with over_budget_cost_price > 0), or \
+                 set repeat_cost_radius = 0"
                     .to_string(),
             );
         }

@@ -110,7 +110,8 @@
 //! (fraction of trajectories that found it), `search_new_cells` (cells of
 //! side `novelty_cell` first entered per episode after the first, over the
 //! episodes that start with the goal not found: near 0 when every episode
-//! drives the same route), `lambda`, `constrained`
+//! drives the same route), `repeat_cost` (cost per episode paid again, near
+//! where the trajectory paid one in an earlier episode), `lambda`, `constrained`
 //! (whether the constraint acted in the round), `over_budget_price` (the
 //! excess price charged, 0 when none is), `entropy_coef`,
 //! `losses/value_loss`, `losses/cost_value_loss`, `losses/policy_loss`, `losses/entropy`, `losses/grad_norm`,
@@ -157,7 +158,7 @@ pub use losses::{UpdateStats, lambda_update};
 pub use multiplier::{ConstraintStart, Gains, Multiplier};
 pub use net::{EppoNet, NetSpec};
 pub use relabel::{pick_goal, relabel};
-pub(crate) use replay::position_cell;
+pub(crate) use replay::{CostMemory, position_cell};
 pub use replay::{Replay, Trajectory};
 pub use timing::{PhaseTimes, thread_cpu_seconds};
 
@@ -784,6 +785,7 @@ fn round_record(
         "revisit_rate": round.revisit_rate,
         "found_goal": round.found,
         "search_new_cells": round.search_new_cells,
+        "repeat_cost": round.repeat_cost,
         "lambda": learner.multiplier.lambda,
         "constrained": learner.constrained(),
         "over_budget_price": learner.over_budget_price(),

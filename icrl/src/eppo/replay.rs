@@ -396,6 +396,61 @@ pub(crate) fn position_cell(obs: &[f32], side: f64) -> (i64, i64) {
     (at(obs[0]), at(obs[1]))
 }
 
+/// Where a trajectory has paid costs, episode by episode, to tell a repeated
+/// cost (paid within `radius` of a cost paid in an earlier episode) from a
+/// first one: in-context safety is not paying twice for one hazard. Shared by
+/// the repeat price ([`EppoConfig::repeat_cost_radius`]) and the evaluation's
+/// repeated-cost metric.
+#[derive(Clone, Debug)]
+pub(crate) struct CostMemory {
+    radius: f32,
+    earlier: Vec<[f32; 2]>,
+    this_episode: Vec<[f32; 2]>,
+}
+
+impl CostMemory {
+    pub(crate) fn new(radius: f64) -> Self {
+        Self {
+            radius: radius as f32,
+            earlier: Vec::new(),
+            this_episode: Vec::new(),
+        }
+    }
+
+    /// Records a cost paid on arriving at `arrived` (position at indices 0
+    /// and 1); true when it repeats one of an earlier episode.
+    pub(crate) fn paid(&mut self, arrived: &[f32]) -> bool {
+        let at = [arrived[0], arrived[1]];
+        let r2 = self.radius * self.radius;
+        let repeated = self
+            .earlier
+            .iter()
+            .any(|p| (p[0] - at[0]).powi(2) + (p[1] - at[1]).powi(2) < r2);
+        self.this_episode.push(at);
+        repeated
+    }
+
+    /// The episode ended: its costs become earlier ones.
+    pub(crate) fn end_episode(&mut self) {
+        self.earlier.append(&mut self.this_episode);
+    }
+}
+
+/// For each step of `t`, true where it pays a repeated cost ([`CostMemory`]
+/// with `radius`, on the arrival's position).
+pub(super) fn repeated_costs(t: &Trajectory, obs_dim: usize, radius: f64) -> Vec<bool> {
+    let mut memory = CostMemory::new(radius);
+    (0..t.len())
+        .map(|step| {
+            let repeated = t.costs[step] > 0.0 && memory.paid(&t.next_obs[step * obs_dim..]);
+            if t.terminated[step] || t.truncated[step] {
+                memory.end_episode();
+            }
+            repeated
+        })
+        .collect()
+}
+
 /// For each step of `t`, 1 where it arrives in a cell (side `cell`, on the
 /// position at observation indices 0 and 1) that the trajectory has not been
 /// in before, episode starts included, up to its first success (0 after it,
@@ -485,6 +540,12 @@ pub(super) fn make_batch(
         } else {
             vec![0.0; t.len()]
         };
+        // Under the repeat price, the steps whose cost the price may charge.
+        let chargeable = if cfg.repeat_cost_radius > 0.0 {
+            repeated_costs(t, spec.obs_dim, cfg.repeat_cost_radius)
+        } else {
+            vec![true; t.len()]
+        };
         let mut found = false;
         for i in 0..l {
             let k = j * l + i;
@@ -539,6 +600,7 @@ pub(super) fn make_batch(
                 dense_reward(t, step, spec, cfg)
             };
             let budget_spent = t.ctg[step] - t.costs[step] < 0.0;
+            let priced_cost = if chargeable[step] { t.costs[step] } else { 0.0 };
             let share = match cfg.novelty_budget {
                 NoveltyBudget::RemainingShare => (t.ctg[step] / t.budget).clamp(0.0, 1.0),
                 NoveltyBudget::Always | NoveltyBudget::WithinBudget => 1.0,
@@ -556,7 +618,7 @@ pub(super) fn make_batch(
                         } else {
                             shaped - bonus
                         };
-                        o.replaced_reward.unwrap_or(kept) - o.cost_price * t.costs[step]
+                        o.replaced_reward.unwrap_or(kept) - o.cost_price * priced_cost
                     }
                     _ => shaped,
                 }
@@ -570,9 +632,7 @@ pub(super) fn make_batch(
                     _ => novelty,
                 };
                 let charged = match shaping.over_budget {
-                    Some(o) if budget_spent && cfg.novelty_pays_price => {
-                        o.cost_price * t.costs[step]
-                    }
+                    Some(o) if budget_spent && cfg.novelty_pays_price => o.cost_price * priced_cost,
                     _ => 0.0,
                 };
                 rew[k] = priced(0.0) * scale;

@@ -235,10 +235,10 @@ fn write_csvs(report: &EvalReport, stem: &Path) -> Result<Vec<PathBuf>, EvalCmdE
     );
     let episodes = PathBuf::from(format!("{}_episodes.csv", stem.display()));
     let mut text = header.clone();
-    text.push_str("k,return_mean,return_se,cost_mean,cost_se,violation_mean,violation_se,success_mean,success_se,n_tasks,discovery_mean,discovery_se,discovery_n_tasks,revisit_mean,revisit_se,revisit_n_tasks,found_by_mean,found_by_se,search_new_cells_mean,search_new_cells_se\n");
+    text.push_str("k,return_mean,return_se,cost_mean,cost_se,violation_mean,violation_se,success_mean,success_se,n_tasks,discovery_mean,discovery_se,discovery_n_tasks,revisit_mean,revisit_se,revisit_n_tasks,found_by_mean,found_by_se,search_new_cells_mean,search_new_cells_se,repeat_cost_mean,repeat_cost_se\n");
     for e in &report.summary.per_episode {
         text.push_str(&format!(
-            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
+            "{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{},{}\n",
             e.k,
             e.ret.mean,
             e.ret.se,
@@ -259,6 +259,8 @@ fn write_csvs(report: &EvalReport, stem: &Path) -> Result<Vec<PathBuf>, EvalCmdE
             e.found_by.se,
             e.search_new_cells.mean,
             e.search_new_cells.se,
+            e.repeat_cost.mean,
+            e.repeat_cost.se,
         ));
     }
     output::write_bytes(&episodes, Existing::Replace, text.as_bytes())?;
@@ -335,6 +337,7 @@ fn run_one(
             Orientation::Edge
         },
         search_cell: super::search_cell(env),
+        repeat_radius: super::repeat_radius(env),
     };
     cfg.validate()?;
 

@@ -111,6 +111,11 @@ pub struct EvalResult {
     /// result files.
     #[serde(default)]
     pub new_cells: Vec<Vec<Vec<u32>>>,
+    /// Cost paid in the episode within [`EvalConfig::repeat_radius`](super::EvalConfig)
+    /// of where the trajectory paid a cost in an earlier episode, same
+    /// layout; empty in older result files.
+    #[serde(default)]
+    pub repeat_costs: Vec<Vec<Vec<f32>>>,
     pub recording: Option<Recording>,
 }
 
@@ -142,6 +147,12 @@ pub struct EpisodeStats {
     /// never found. Undefined in older result files.
     #[serde(default = "MeanSe::undefined")]
     pub search_new_cells: MeanSe,
+    /// The part of `cost` paid again: near where the trajectory paid a cost
+    /// in an earlier episode. An agent that learns from its context lowers
+    /// it with k; one that ignores the costs in it pays about its share of
+    /// `cost`. Undefined in older result files.
+    #[serde(default = "MeanSe::undefined")]
+    pub repeat_cost: MeanSe,
 }
 
 /// Budget-sweep statistics of one condition, over tasks.
@@ -277,6 +288,13 @@ impl EvalResult {
                     f64::from(u8::from(self.reached_goal[c][t][..=k].contains(&true)))
                 })),
                 search_new_cells: ms(&self.cells_entered_while_searching(k)),
+                repeat_cost: if self.repeat_costs.is_empty() {
+                    MeanSe::undefined()
+                } else {
+                    ms(&self.per_task_over_conditions(k, |c, t, k| {
+                        f64::from(self.repeat_costs[c][t][k])
+                    }))
+                },
             })
             .collect();
         let per_condition = self

@@ -533,6 +533,92 @@ fn novelty_critics_take_the_bonus_out_of_the_reward_critics() {
     );
 }
 
+/// Under the repeat price, a cost paid where the trajectory paid one in an
+/// earlier episode is charged, and a first one is not: in `cell_walk`, step
+/// 3 re-enters episode 0's costly (4,5); steps 4 and 5 meet new costs, and
+/// step 6 repeats step 5 inside one episode, which is not yet learning from
+/// context. Dropping the rule charges all five.
+#[test]
+fn the_repeat_price_charges_only_costs_paid_again_in_a_later_episode() {
+    let mut t = cell_walk();
+    for step in [0, 3, 4, 5, 6] {
+        t.costs[step] = 1.0;
+    }
+    t.ctg = vec![0.0; t.len()];
+    assert_eq!(
+        repeated_costs(&t, 2, 0.5),
+        [false, false, false, true, false, false, false, false]
+    );
+    let spec = grid_spec();
+    let rewards = |cfg: &EppoConfig| {
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let shaping = Shaping {
+            novelty: cfg.novelty_bonus as f32,
+            over_budget: Some(OverBudget {
+                replaced_reward: None,
+                cost_price: 2.0,
+                pays_novelty: true,
+            }),
+        };
+        let b = make_batch(&[&t], cfg, &spec, shaping, &mut rng, Device::Cpu);
+        let scale = cfg.reward_scale as f32;
+        let unscaled = |x: &Tensor| to_vec(x).iter().map(|r| r / scale).collect::<Vec<_>>();
+        (
+            unscaled(&b.rewards),
+            b.novelty_rewards.as_ref().map(unscaled),
+        )
+    };
+    let every = EppoConfig {
+        penalty: PenaltyForm::Excess,
+        over_budget_cost_price: 2.0,
+        lambda_lr: 0.0,
+        ..tiny()
+    };
+    let repeats = EppoConfig {
+        repeat_cost_radius: 0.5,
+        ..every.clone()
+    };
+    repeats.validate().unwrap();
+    assert_eq!(
+        rewards(&every).0,
+        [-2.0, 0.0, 0.0, -2.0, -1.0, -2.0, -2.0, 0.0]
+    );
+    assert_eq!(
+        rewards(&repeats).0,
+        [0.0, 0.0, 0.0, -2.0, 1.0, 0.0, 0.0, 0.0]
+    );
+    // The novelty critics, paying the price, are charged at the repeat alone.
+    let novelty = EppoConfig {
+        novelty_bonus: 0.5,
+        novelty_critic: true,
+        novelty_pays_price: true,
+        ..repeats.clone()
+    };
+    assert_eq!(
+        rewards(&novelty).1.unwrap(),
+        [0.5, 0.0, 0.5, -2.0, 0.5, 0.0, 0.0, 0.0]
+    );
+    for (cfg, needs) in [
+        (
+            EppoConfig {
+                penalty: PenaltyForm::Hindsight,
+                ..repeats.clone()
+            },
+            "penalty = \"excess\"",
+        ),
+        (
+            EppoConfig {
+                repeat_cost_radius: -0.4,
+                ..every.clone()
+            },
+            ">= 0",
+        ),
+    ] {
+        let e = cfg.validate().unwrap_err().to_string();
+        assert!(e.contains("repeat_cost_radius") && e.contains(needs), "{e}");
+    }
+}
+
 #[test]
 fn new_cells_while_searching_counts_cells_first_entered_after_a_miss() {
     // cell_walk: episode 1 starts unfound and enters one new cell, (3,5),
