@@ -29,10 +29,11 @@ use rand_chacha::ChaCha8Rng;
 use rand_distr::StandardNormal;
 use safety_envs::{Action, CmdpEnv, EnvError, Space, Task};
 use serde::{Deserialize, Serialize};
-use tch::{Device, Kind, Tensor, nn, nn::Module, nn::OptimizerConfig};
+use tch::{Device, Kind, Tensor, nn, nn::Module};
 use thiserror::Error;
 
 use crate::data::histories::History;
+use crate::optim::{Adam, AdamConfig, StepRefused};
 
 pub use config::PpoLagConfig;
 pub use losses::{Lagrange, RunningNorm, clipped_surrogate, combined_advantage, gae};
@@ -47,11 +48,13 @@ pub enum PpoLagError {
     Env(#[from] EnvError),
     #[error(transparent)]
     Torch(#[from] tch::TchError),
-    /// A loss became NaN or infinite: the history would be meaningless.
+    /// A step was refused (a loss or gradient that is NaN or infinite, or
+    /// libtorch's error from the backward pass): the history would be
+    /// meaningless.
     #[error(
-        "PPO-Lagrangian update {update}: the loss is {loss}; lower learning_rate or check the settings"
+        "PPO-Lagrangian update {update}: {why}; no step taken. Lower learning_rate or check the settings"
     )]
-    NonFinite { update: usize, loss: f64 },
+    StepRefused { update: usize, why: StepRefused },
 }
 
 /// Metrics of one update, against environment steps. Names as CleanRL logs
@@ -159,7 +162,18 @@ pub fn train(
     let net = crate::torch_rng::seeded(seed, || {
         ActorCritic::new(&vs.root(), obs_dim as i64, &space, cfg)
     });
-    let mut opt = nn::Adam::default().build(&vs, cfg.learning_rate)?;
+    // Our Adam, not tch's: its backward pass reports libtorch's errors
+    // instead of panicking (tch's defaults otherwise: betas 0.9, 0.999).
+    let mut opt = Adam::new(
+        &vs,
+        AdamConfig {
+            lr: cfg.learning_rate,
+            beta1: 0.9,
+            beta2: 0.999,
+            eps: 1e-8,
+            grad_clip: Some(cfg.max_grad_norm),
+        },
+    );
     let mut lagrange = Lagrange::new(cfg.lagrange_init, cfg.lagrange_lr, cfg.lagrange_max);
     let mut norm = RunningNorm::new(obs_dim);
 
@@ -383,14 +397,11 @@ pub fn train(
                 .mean(Kind::Float);
                 let ent = entropy.mean(Kind::Float);
                 let loss = &pg_loss - cfg.ent_coef * &ent + cfg.vf_coef * (&v_loss + &c_loss);
-                let value = loss.double_value(&[]);
-                if !value.is_finite() {
-                    return Err(PpoLagError::NonFinite {
+                opt.try_backward_step(&loss)
+                    .map_err(|why| PpoLagError::StepRefused {
                         update: update + 1,
-                        loss: value,
-                    });
-                }
-                opt.backward_step_clip_norm(&loss, cfg.max_grad_norm);
+                        why,
+                    })?;
                 // http://joschu.net/blog/kl-approx.html: E[(r - 1) - log r]
                 let kl = tch::no_grad(|| ((&ratio - 1.0) - &log_ratio).mean(Kind::Float));
                 for (s, t) in sums.iter_mut().zip([&pg_loss, &v_loss, &c_loss, &ent, &kl]) {
