@@ -119,6 +119,24 @@ pub(super) fn new_cells_while_searching(trajs: &[Trajectory], obs_dim: usize, ce
     }
 }
 
+/// The mean cost per episode paid again ([`repeated_costs`] with
+/// `radius`), over every episode of `trajs`; 0 with none.
+pub(super) fn repeat_cost_per_episode(trajs: &[Trajectory], obs_dim: usize, radius: f64) -> f64 {
+    let again: f64 = trajs
+        .iter()
+        .flat_map(|t| {
+            let repeated = repeated_costs(t, obs_dim, radius);
+            t.costs
+                .iter()
+                .zip(repeated)
+                .filter(|c| c.1)
+                .map(|c| f64::from(*c.0))
+        })
+        .sum();
+    let episodes: usize = trajs.iter().map(|t| t.episode_costs.len()).sum();
+    again / episodes.max(1) as f64
+}
+
 pub(super) fn mean(xs: impl Iterator<Item = f64>) -> f64 {
     let (s, n) = xs.fold((0.0, 0usize), |(s, n), x| (s + x, n + 1));
     if n == 0 { 0.0 } else { s / n as f64 }
@@ -157,18 +175,7 @@ fn round_stats(
         revisit_rate,
         found,
         search_new_cells: new_cells_while_searching(trajs, spec.obs_dim, cell),
-        repeat_cost: {
-            let again = trajs.iter().flat_map(|t| {
-                let repeated = repeated_costs(t, spec.obs_dim, repeat_radius);
-                t.costs
-                    .iter()
-                    .zip(repeated)
-                    .filter(|r| r.1)
-                    .map(|r| f64::from(*r.0))
-            });
-            let episodes: usize = trajs.iter().map(|t| t.episode_costs.len()).sum();
-            again.sum::<f64>() / episodes.max(1) as f64
-        },
+        repeat_cost: repeat_cost_per_episode(trajs, spec.obs_dim, repeat_radius),
         trajectories: trajs.len(),
         steps,
         mean_return: mean(

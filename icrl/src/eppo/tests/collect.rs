@@ -549,6 +549,13 @@ fn the_repeat_price_charges_only_costs_paid_again_in_a_later_episode() {
         repeated_costs(&t, 2, 0.5),
         [false, false, false, true, false, false, false, false]
     );
+    // The training metric: one unit paid again over 3 episodes, then over
+    // 6 with a costless trajectory beside it.
+    assert_eq!(repeat_cost_per_episode(&[t.clone()], 2, 0.5), 1.0 / 3.0);
+    assert_eq!(
+        repeat_cost_per_episode(&[t.clone(), cell_walk()], 2, 0.5),
+        1.0 / 6.0
+    );
     let spec = grid_spec();
     let rewards = |cfg: &EppoConfig| {
         let mut rng = ChaCha8Rng::seed_from_u64(0);

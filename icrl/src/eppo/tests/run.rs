@@ -167,6 +167,7 @@ fn pretrain_end_to_end_checkpoints_resumes_and_loads() {
         "losses/value_loss",
         "revisit_rate",
         "search_new_cells",
+        "repeat_cost",
     ] {
         assert!(first.get(key).is_some(), "{key}");
     }
