@@ -541,11 +541,8 @@ pub(super) fn make_batch(
             vec![0.0; t.len()]
         };
         // Under the repeat price, the steps whose cost the price may charge.
-        let chargeable = if cfg.repeat_cost_radius > 0.0 {
-            repeated_costs(t, spec.obs_dim, cfg.repeat_cost_radius)
-        } else {
-            vec![true; t.len()]
-        };
+        let repeated = (cfg.repeat_cost_radius > 0.0)
+            .then(|| repeated_costs(t, spec.obs_dim, cfg.repeat_cost_radius));
         let mut found = false;
         for i in 0..l {
             let k = j * l + i;
@@ -600,7 +597,10 @@ pub(super) fn make_batch(
                 dense_reward(t, step, spec, cfg)
             };
             let budget_spent = t.ctg[step] - t.costs[step] < 0.0;
-            let priced_cost = if chargeable[step] { t.costs[step] } else { 0.0 };
+            let priced_cost = match &repeated {
+                Some(repeated) if !repeated[step] => 0.0,
+                _ => t.costs[step],
+            };
             let share = match cfg.novelty_budget {
                 NoveltyBudget::RemainingShare => (t.ctg[step] / t.budget).clamp(0.0, 1.0),
                 NoveltyBudget::Always | NoveltyBudget::WithinBudget => 1.0,

@@ -135,8 +135,9 @@ pub struct EvalConfig {
 
 /// The distance within which the `repeat_cost` metric counts a cost as
 /// paid again in `env`: a hazard's diameter on the robots (two arrivals in
-/// one hazard lie within it; hazards sit on the 0.75 m task grid, so no
-/// two of them do), one SafeDarkRoom cell.
+/// one hazard lie within it; hazards sit 0.75 m apart on the task grid, so
+/// arrivals in two of them rarely do: 1 of 1479 costly steps in the check
+/// of results/eppo_point_ladder), one SafeDarkRoom cell.
 pub fn repeat_radius(env: EnvName) -> f64 {
     match env {
         EnvName::DarkRoom => 0.5,
