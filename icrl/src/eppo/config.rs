@@ -339,6 +339,12 @@ pub struct EppoConfig {
     /// budgets came out the most costly (results/eppo_darkroom_budget, sa1).
     #[serde(default, alias = "saute_cost_price")]
     pub over_budget_cost_price: f64,
+    /// `penalty = "terminate"`: the reward the critics see on top of the step
+    /// that overspends, where their value ends (Sun et al.'s r_e, at most 0:
+    /// every reward here is at least 0, so ending the value already costs
+    /// what the rest of the trajectory was worth).
+    #[serde(default)]
+    pub termination_reward: f64,
     /// Later prices: each `{ after = N, price = P }` charges P per unit of
     /// excess cost from N updates past the constraint's start on (N rising).
     /// A price high enough to make the budget bind at the start stops search
@@ -461,6 +467,17 @@ pub enum PenaltyForm {
     /// fixed. Saute's form, which also drops the goal once overspent, made a
     /// spent budget a reason to rush to the next episode (sa1, sa3).
     Excess,
+    /// The early-terminated MDP of Sun et al. (2021, "Safe Exploration by
+    /// Solving Early Terminated MDP"), over the K episodes: no multiplier and
+    /// no actor penalty; the step that takes an episode's cost past its
+    /// budget ends the value in the reward and novelty critics' targets (its
+    /// own reward plus `termination_reward`, nothing bootstrapped past it).
+    /// Overspending then forfeits every later episode's return, what a search
+    /// past the budget would learn included: under a price, that knowledge
+    /// kept search through hazards worth its cost (Point, pc1-pc7). The
+    /// environment and the tokens go on, and the later steps, later episodes
+    /// with fresh budgets among them, train as usual.
+    Terminate,
 }
 
 /// One step of `over_budget_price_schedule`.
@@ -659,6 +676,11 @@ impl EppoConfig {
                 self.over_budget_cost_price,
                 Range::NON_NEGATIVE,
             ),
+            (
+                "termination_reward",
+                self.termination_reward,
+                Range::new(f64::NEG_INFINITY, true, 0.0, false),
+            ),
         ])
         .or_else(bad)?;
         if let Some(t) = self.target_entropy
@@ -683,21 +705,40 @@ impl EppoConfig {
                     .to_string(),
             );
         }
-        if matches!(self.penalty, PenaltyForm::Saute | PenaltyForm::Excess)
-            && (self.lambda_init != 0.0
-                || self.lambda_lr != 0.0
-                || self.lambda_kp != 0.0
-                || self.lambda_kd != 0.0)
+        if matches!(
+            self.penalty,
+            PenaltyForm::Saute | PenaltyForm::Excess | PenaltyForm::Terminate
+        ) && (self.lambda_init != 0.0
+            || self.lambda_lr != 0.0
+            || self.lambda_kp != 0.0
+            || self.lambda_kd != 0.0)
         {
-            let form = if self.penalty == PenaltyForm::Saute {
-                "saute"
-            } else {
-                "excess"
+            let form = match self.penalty {
+                PenaltyForm::Saute => "saute",
+                PenaltyForm::Excess => "excess",
+                _ => "terminate",
             };
             return bad(format!(
-                "penalty = \"{form}\" prices the budget in the critics' reward, so the \
+                "penalty = \"{form}\" prices the budget in the critics' targets, so the \
                  multiplier must stay at 0: set lambda_init = 0, lambda_lr = 0, lambda_kp = 0 \
                  and lambda_kd = 0"
+            ));
+        }
+        if self.over_budget_cost_price > 0.0
+            && !matches!(self.penalty, PenaltyForm::Saute | PenaltyForm::Excess)
+        {
+            return bad(format!(
+                "over_budget_cost_price = {} is charged only under penalty = \"excess\" or \
+                 \"saute\": set one of them, or set over_budget_cost_price = 0",
+                self.over_budget_cost_price
+            ));
+        }
+        if self.termination_reward != 0.0 && self.penalty != PenaltyForm::Terminate {
+            return bad(format!(
+                "termination_reward = {} is the reward where penalty = \"terminate\" ends the \
+                 critics' value, and penalty is not \"terminate\": set it, or drop \
+                 termination_reward",
+                self.termination_reward
             ));
         }
         if self.penalty == PenaltyForm::Excess && self.over_budget_cost_price <= 0.0 {
@@ -955,7 +996,7 @@ impl EppoConfig {
         let Some(since) = constrained_since else {
             return Shaping {
                 novelty: self.novelty_weight(updates) as f32,
-                over_budget: None,
+                ..Shaping::default()
             };
         };
         let cost_price = self.over_budget_price(updates.saturating_sub(since)) as f32;
@@ -972,8 +1013,10 @@ impl EppoConfig {
                     cost_price,
                     pays_novelty: self.novelty_budget != NoveltyBudget::WithinBudget,
                 }),
-                PenaltyForm::Hindsight | PenaltyForm::Hinge => None,
+                PenaltyForm::Hindsight | PenaltyForm::Hinge | PenaltyForm::Terminate => None,
             },
+            overspending_ends_value: (self.penalty == PenaltyForm::Terminate)
+                .then_some(self.termination_reward as f32),
         }
     }
 

@@ -378,8 +378,8 @@ fn continuous_actor(
 /// The cost the actor is charged for, before lambda x reward_scale:
 /// Qc on the steps of episodes that ended over budget (`violated` 1), or,
 /// for the hinge, max(0, Qc - CTG), the predicted remaining cost past the
-/// remaining budget; nothing under Saute or the excess price, whose price is
-/// in the critics' reward. `violated` and `ctg` broadcast against `qc`.
+/// remaining budget; nothing under Saute, the excess price or the
+/// termination, whose price is in the critics' targets. `violated` and `ctg` broadcast against `qc`.
 pub(super) fn penalised_cost(
     qc: &Tensor,
     violated: &Tensor,
@@ -389,7 +389,7 @@ pub(super) fn penalised_cost(
     match form {
         PenaltyForm::Hindsight => qc * violated,
         PenaltyForm::Hinge => (qc - ctg).relu(),
-        PenaltyForm::Saute | PenaltyForm::Excess => qc.zeros_like(),
+        PenaltyForm::Saute | PenaltyForm::Excess | PenaltyForm::Terminate => qc.zeros_like(),
     }
 }
 

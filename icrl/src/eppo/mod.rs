@@ -92,8 +92,10 @@
 //! reward (`penalty = "excess"`: Eq. (5)'s exact penalty with lambda fixed),
 //! less `over_budget_cost_price` per unit of cost, so the price of
 //! overspending does not depend on where an integrator settles on a given
-//! training seed. The constraint (multiplier and price alike) waits
-//! `lambda_warmup_updates`, and with `constraint_after_revisit` also for the
+//! training seed; or the step that overspends ends the critics' value over
+//! the K episodes (`penalty = "terminate"`, an early-terminated MDP), so a
+//! search past the budget is worth nothing to the episodes after it. The
+//! constraint (multiplier and price alike) waits `lambda_warmup_updates`, and with `constraint_after_revisit` also for the
 //! training revisit rate to reach a level (`multiplier::ConstraintStart`):
 //! priced before the agent comes back to the goals it finds, it learns to
 //! search and never to come back (dx1). `over_budget_price_schedule` raises
@@ -406,12 +408,17 @@ impl Learner {
     }
 
     /// The penalty's state for a progress or summary line: the over-budget
-    /// price under the forms that charge one, lambda under the others.
+    /// price under the forms that charge one, the termination's reward under
+    /// `terminate`, lambda under the others.
     pub fn penalty_reading(&self) -> String {
         match self.cfg.penalty {
             PenaltyForm::Excess | PenaltyForm::Saute => {
                 format!("over-budget price {:.2}", self.over_budget_price())
             }
+            PenaltyForm::Terminate => format!(
+                "overspending ends the value (termination reward {:.2})",
+                self.cfg.termination_reward
+            ),
             PenaltyForm::Hindsight | PenaltyForm::Hinge => {
                 format!("lambda {:.4}", self.multiplier.lambda)
             }

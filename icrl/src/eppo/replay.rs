@@ -486,6 +486,10 @@ pub(super) struct Shaping {
     /// Saute and the excess price: the reward of every step of an episode
     /// once its cost has passed its budget (CTG after the step below 0).
     pub(super) over_budget: Option<OverBudget>,
+    /// `penalty = "terminate"`: the reward added where an episode's cost
+    /// first passes its budget, the step at which the reward and novelty
+    /// critics' value ends.
+    pub(super) overspending_ends_value: Option<f32>,
 }
 
 /// The reward of a step taken over budget: `r - cost_price x c`, where r is
@@ -597,6 +601,7 @@ pub(super) fn make_batch(
                 dense_reward(t, step, spec, cfg)
             };
             let budget_spent = t.ctg[step] - t.costs[step] < 0.0;
+            let overspends = budget_spent && t.ctg[step] >= 0.0;
             let priced_cost = match &repeated {
                 Some(repeated) if !repeated[step] => 0.0,
                 _ => t.costs[step],
@@ -650,7 +655,13 @@ pub(super) fn make_batch(
             valid[k] = 1.0;
             goal_known[k] = if found { 1.0 } else { 0.0 };
             found |= t.terminated[step];
-            let (has_target, bootstraps, cost_bootstraps) = td_masks(cfg, t, step, i + 1 < len);
+            let (has_target, mut bootstraps, cost_bootstraps) = td_masks(cfg, t, step, i + 1 < len);
+            if let Some(end_reward) = shaping.overspending_ends_value
+                && overspends
+            {
+                rew[k] += end_reward * scale;
+                bootstraps = false;
+            }
             td_valid[k] = if has_target { 1.0 } else { 0.0 };
             boot[k] = if bootstraps { 1.0 } else { 0.0 };
             cost_boot[k] = if cost_bootstraps { 1.0 } else { 0.0 };

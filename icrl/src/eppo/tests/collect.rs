@@ -359,6 +359,7 @@ fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
     let batch = |cfg: &EppoConfig, novelty: f32| {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let shaping = Shaping {
+            overspending_ends_value: None,
             novelty,
             over_budget: None,
         };
@@ -421,6 +422,7 @@ fn novelty_critics_take_the_bonus_out_of_the_reward_critics() {
     let batch = |cfg: &EppoConfig, over_budget: Option<OverBudget>| {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let shaping = Shaping {
+            overspending_ends_value: None,
             novelty: 0.1,
             over_budget,
         };
@@ -560,6 +562,7 @@ fn the_repeat_price_charges_only_costs_paid_again_in_a_later_episode() {
     let rewards = |cfg: &EppoConfig| {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let shaping = Shaping {
+            overspending_ends_value: None,
             novelty: cfg.novelty_bonus as f32,
             over_budget: Some(OverBudget {
                 replaced_reward: None,
@@ -609,6 +612,7 @@ fn the_repeat_price_charges_only_costs_paid_again_in_a_later_episode() {
         (
             EppoConfig {
                 penalty: PenaltyForm::Hindsight,
+                over_budget_cost_price: 0.0,
                 ..repeats.clone()
             },
             "penalty = \"excess\"",

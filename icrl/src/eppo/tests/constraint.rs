@@ -15,15 +15,18 @@ fn overspent_walk() -> (Trajectory, NetSpec) {
     (t, grid_spec())
 }
 
-/// A config whose over-budget price (`form`, 2 per unit of cost) starts at
-/// update 100, the multiplier held at 0; checks nothing is priced before.
+/// A config whose constraint (`form`; 2 per unit of cost under the forms
+/// that charge a price) starts at update 100, the multiplier held at 0;
+/// checks nothing is priced before.
 fn priced_from_update_100(form: PenaltyForm) -> EppoConfig {
     let mut cfg = tiny();
     cfg.penalty = form;
     cfg.lambda_lr = 0.0;
     cfg.lambda_init = 0.0;
     cfg.lambda_warmup_updates = 100;
-    cfg.over_budget_cost_price = 2.0;
+    if matches!(form, PenaltyForm::Saute | PenaltyForm::Excess) {
+        cfg.over_budget_cost_price = 2.0;
+    }
     let count = ConstraintStart::default();
     assert_eq!(count.started_at(99, cfg.lambda_warmup_updates, None), None);
     assert_eq!(
@@ -140,6 +143,7 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
         })
     );
     let over_budget = |reward: f32, cost_price: f32| Shaping {
+        overspending_ends_value: None,
         novelty: 0.0,
         over_budget: Some(OverBudget {
             replaced_reward: Some(reward),
@@ -264,6 +268,71 @@ fn excess_price_charges_each_unit_past_the_budget_and_keeps_the_goal() {
         err.contains("penalty = \"excess\"") && err.contains("lambda_lr = 0"),
         "{err}"
     );
+}
+
+#[test]
+fn termination_ends_the_critics_value_at_the_step_that_overspends() {
+    let (t, spec) = overspent_walk();
+    let mut cfg = priced_from_update_100(PenaltyForm::Terminate);
+    cfg.termination_reward = -0.5;
+    cfg.validate().unwrap();
+    assert_eq!(cfg.shaping(99, None).overspending_ends_value, None);
+    let shaping = cfg.shaping(100, Some(100));
+    assert_eq!(shaping.overspending_ends_value, Some(-0.5));
+    assert_eq!(shaping.over_budget, None, "no price per unit");
+    let batch = |shaping: Shaping| {
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        make_batch(&[&t], &cfg, &spec, shaping, &mut rng, Device::Cpu)
+    };
+    let (plain, ended) = (batch(cfg.shaping(99, None)), batch(shaping));
+    assert_eq!(to_vec(&plain.tokens), to_vec(&ended.tokens));
+    let scale = cfg.reward_scale as f32;
+    let unscaled: Vec<f32> = to_vec(&ended.rewards).iter().map(|r| r / scale).collect();
+    // Step 2 (episode 0) and step 3 (episode 1) take their episodes past the
+    // budget; the goal reached already over budget (step 4) keeps its reward.
+    assert_eq!(unscaled, vec![0.0, 0.0, -0.5, -0.5, 1.0, 0.0, 0.0, 0.0]);
+    let (before, after) = (to_vec(&plain.bootstrap), to_vec(&ended.bootstrap));
+    for step in 0..t.len() {
+        let expected = if step == 2 || step == 3 {
+            0.0
+        } else {
+            before[step]
+        };
+        assert_eq!(after[step], expected, "step {step}");
+    }
+    assert_eq!(before[2], 1.0, "the walk bootstraps there unconstrained");
+    assert_eq!(to_vec(&ended.costs), t.costs, "costs as paid");
+    assert_eq!(to_vec(&ended.cost_bootstrap), to_vec(&plain.cost_bootstrap));
+    // The actor pays no lambda term, and the multiplier must stay at 0.
+    let qc = Tensor::from_slice(&[0.5f32, 2.0]).view([1, 2]);
+    let ones = qc.ones_like();
+    assert_eq!(
+        to_vec(&penalised_cost(
+            &qc,
+            &ones,
+            &ones.zeros_like(),
+            PenaltyForm::Terminate
+        )),
+        vec![0.0, 0.0]
+    );
+    cfg.lambda_lr = 0.01;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(
+        err.contains("penalty = \"terminate\"") && err.contains("lambda_lr = 0"),
+        "{err}"
+    );
+    cfg.lambda_lr = 0.0;
+    cfg.termination_reward = 0.5;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(err.contains("termination_reward"), "{err}");
+    cfg.termination_reward = -0.5;
+    cfg.over_budget_cost_price = 1.0;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(err.contains("over_budget_cost_price = 1"), "{err}");
+    cfg.over_budget_cost_price = 0.0;
+    cfg.penalty = PenaltyForm::Hinge;
+    let err = cfg.validate().unwrap_err().to_string();
+    assert!(err.contains("termination_reward = -0.5"), "{err}");
 }
 
 #[test]

@@ -95,6 +95,7 @@ fn the_actor_weighs_the_novelty_critics_only_before_a_success() {
     };
     cfg.model.embd_dropout = 0.0;
     let shaping = Shaping {
+        overspending_ends_value: None,
         novelty: 0.1,
         over_budget: None,
     };
