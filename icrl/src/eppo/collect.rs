@@ -43,6 +43,9 @@ pub struct RoundStats {
     /// Mean cost per episode paid again ([`CostMemory`](super::replay::CostMemory), the evaluation's
     /// `repeat_cost`): what the context could have spared.
     pub repeat_cost: f64,
+    /// The share of trajectories whose last episode ended over its budget:
+    /// in training, what the evaluation's within-budget rate at K measures.
+    pub last_over_budget: f64,
     /// Continuous actions: mean |a| of the collected actions (in [-1, 1])
     /// and the fraction with |a| > 0.99; NaN for discrete actions.
     pub action_abs: f64,
@@ -200,7 +203,16 @@ fn round_stats(
                 .iter()
                 .map(|t| f64::from(*t.episode_costs.last().unwrap_or(&0.0))),
         ),
+        last_over_budget: last_over_budget(trajs),
     }
+}
+
+/// The share of `trajs` whose last episode's cost passed the budget.
+pub(super) fn last_over_budget(trajs: &[Trajectory]) -> f64 {
+    mean(trajs.iter().map(|t| {
+        let over = t.episode_costs.last().is_some_and(|&c| c > t.budget);
+        if over { 1.0 } else { 0.0 }
+    }))
 }
 
 impl Learner {

@@ -113,7 +113,9 @@
 //! side `novelty_cell` first entered per episode after the first, over the
 //! episodes that start with the goal not found: near 0 when every episode
 //! drives the same route), `repeat_cost` (cost per episode paid again, near
-//! where the trajectory paid one in an earlier episode), `lambda`, `constrained`
+//! where the trajectory paid one in an earlier episode), `last_over_budget`
+//! (the share of trajectories whose last episode ended over its budget),
+//! `lambda`, `constrained`
 //! (whether the constraint acted in the round), `over_budget_price` (the
 //! excess price charged, 0 when none is), `entropy_coef`,
 //! `losses/value_loss`, `losses/cost_value_loss`, `losses/policy_loss`, `losses/entropy`, `losses/grad_norm`,
@@ -793,6 +795,7 @@ fn round_record(
         "found_goal": round.found,
         "search_new_cells": round.search_new_cells,
         "repeat_cost": round.repeat_cost,
+        "last_over_budget": round.last_over_budget,
         "lambda": learner.multiplier.lambda,
         "constrained": learner.constrained(),
         "over_budget_price": learner.over_budget_price(),

@@ -168,6 +168,7 @@ fn pretrain_end_to_end_checkpoints_resumes_and_loads() {
         "revisit_rate",
         "search_new_cells",
         "repeat_cost",
+        "last_over_budget",
     ] {
         assert!(first.get(key).is_some(), "{key}");
     }
