@@ -323,7 +323,8 @@ pub struct EppoConfig {
         deserialize_with = "novelty_budget_or_bool"
     )]
     pub novelty_budget: NoveltyBudget,
-    /// Which steps the actor's cost penalty lambda x Qc weighs (issue 18).
+    /// How the budget acts: through the actor's penalty lambda x Qc (on
+    /// which steps), or in the critics' targets (issue 18, issue 19).
     #[serde(default)]
     pub penalty: PenaltyForm,
     /// `penalty = "saute"`: the critics' reward for every step of an episode
@@ -439,7 +440,8 @@ fn novelty_budget_or_bool<'de, D: serde::Deserializer<'de>>(
     })
 }
 
-/// Where the actor pays lambda x reward_scale x Qc.
+/// How the budget acts: where the actor pays lambda x reward_scale x Qc, or
+/// what the critics' targets charge instead.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum PenaltyForm {

@@ -379,7 +379,8 @@ fn continuous_actor(
 /// Qc on the steps of episodes that ended over budget (`violated` 1), or,
 /// for the hinge, max(0, Qc - CTG), the predicted remaining cost past the
 /// remaining budget; nothing under Saute, the excess price or the
-/// termination, whose price is in the critics' targets. `violated` and `ctg` broadcast against `qc`.
+/// termination, whose price is in the critics' targets. `violated` and
+/// `ctg` broadcast against `qc`.
 pub(super) fn penalised_cost(
     qc: &Tensor,
     violated: &Tensor,

@@ -95,7 +95,8 @@
 //! training seed; or the step that overspends ends the critics' value over
 //! the K episodes (`penalty = "terminate"`, an early-terminated MDP), so a
 //! search past the budget is worth nothing to the episodes after it. The
-//! constraint (multiplier and price alike) waits `lambda_warmup_updates`, and with `constraint_after_revisit` also for the
+//! constraint (multiplier, price and termination alike) waits
+//! `lambda_warmup_updates`, and with `constraint_after_revisit` also for the
 //! training revisit rate to reach a level (`multiplier::ConstraintStart`):
 //! priced before the agent comes back to the goals it finds, it learns to
 //! search and never to come back (dx1). `over_budget_price_schedule` raises
