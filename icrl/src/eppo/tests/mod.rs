@@ -14,7 +14,8 @@ use tch::{Device, Kind, Tensor};
 use safety_envs::{EnvName, Orientation, VecEnv, sample_task, spawn_config};
 
 use super::collect::{
-    Acting, EnvActions, Policy, last_over_budget, new_cells_while_searching, repeat_cost_per_episode, sample_actions,
+    Acting, EnvActions, Policy, last_over_budget, new_cells_while_searching,
+    repeat_cost_per_episode, sample_actions,
 };
 use super::losses::{goal_recall_loss, losses, n_step_targets, penalised_cost, tuned_entropy_coef};
 use super::net::{tanh_gaussian_log_prob, tanh_gaussian_sample};
