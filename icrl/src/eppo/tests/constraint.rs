@@ -41,6 +41,19 @@ fn priced_from_update_100(form: PenaltyForm) -> EppoConfig {
     cfg
 }
 
+/// A form that prices the budget in the critics' targets charges the actor
+/// no lambda term, even on steps flagged over budget with the budget spent.
+fn assert_no_actor_penalty(form: PenaltyForm) {
+    let qc = Tensor::from_slice(&[0.5f32, 2.0]).view([1, 2]);
+    let ones = qc.ones_like();
+    let spent = ones.zeros_like() - 5.0;
+    assert_eq!(
+        to_vec(&penalised_cost(&qc, &ones, &spent, form)),
+        vec![0.0, 0.0],
+        "{form:?}"
+    );
+}
+
 #[test]
 fn a_measured_constraint_start_waits_for_the_warmup_and_the_revisit_rate() {
     let (warmup, threshold, rounds) = (100, 0.8, 3);
@@ -182,18 +195,7 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
     // Under another penalty form the same settings shape nothing.
     cfg.penalty = PenaltyForm::Hindsight;
     assert_eq!(cfg.shaping(100, Some(100)).over_budget, None);
-    // The actor pays no lambda term: the price is in the reward.
-    let qc = Tensor::from_slice(&[0.5f32, 2.0]).view([1, 2]);
-    let ones = qc.ones_like();
-    assert_eq!(
-        to_vec(&penalised_cost(
-            &qc,
-            &ones,
-            &(ones.zeros_like() - 5.0),
-            PenaltyForm::Saute
-        )),
-        vec![0.0, 0.0]
-    );
+    assert_no_actor_penalty(PenaltyForm::Saute);
 }
 
 #[test]
@@ -245,18 +247,7 @@ fn excess_price_charges_each_unit_past_the_budget_and_keeps_the_goal() {
         t.costs,
         "the cost critic's targets are the costs as paid"
     );
-    // No actor penalty: the price is in the reward.
-    let qc = Tensor::from_slice(&[0.5f32, 2.0]).view([1, 2]);
-    let ones = qc.ones_like();
-    assert_eq!(
-        to_vec(&penalised_cost(
-            &qc,
-            &ones,
-            &ones.zeros_like(),
-            PenaltyForm::Excess
-        )),
-        vec![0.0, 0.0]
-    );
+    assert_no_actor_penalty(PenaltyForm::Excess);
     // Refused without a price, or with a multiplier that moves.
     cfg.over_budget_cost_price = 0.0;
     let err = cfg.validate().unwrap_err().to_string();
@@ -303,18 +294,8 @@ fn termination_ends_the_critics_value_at_the_step_that_overspends() {
     assert_eq!(before[2], 1.0, "the walk bootstraps there unconstrained");
     assert_eq!(to_vec(&ended.costs), t.costs, "costs as paid");
     assert_eq!(to_vec(&ended.cost_bootstrap), to_vec(&plain.cost_bootstrap));
-    // The actor pays no lambda term, and the multiplier must stay at 0.
-    let qc = Tensor::from_slice(&[0.5f32, 2.0]).view([1, 2]);
-    let ones = qc.ones_like();
-    assert_eq!(
-        to_vec(&penalised_cost(
-            &qc,
-            &ones,
-            &ones.zeros_like(),
-            PenaltyForm::Terminate
-        )),
-        vec![0.0, 0.0]
-    );
+    assert_no_actor_penalty(PenaltyForm::Terminate);
+    // The multiplier must stay at 0.
     cfg.lambda_lr = 0.01;
     let err = cfg.validate().unwrap_err().to_string();
     assert!(
