@@ -554,6 +554,10 @@ fn the_repeat_price_charges_only_costs_paid_again_in_a_later_episode() {
     // The training metric: one unit paid again over 3 episodes, then over
     // 6 with a costless trajectory beside it.
     assert_eq!(repeat_cost_per_episode(&[t.clone()], 2, 0.5), 1.0 / 3.0);
+    assert_eq!(
+        repeat_cost_per_episode(&[t.clone(), cell_walk()], 2, 0.5),
+        1.0 / 6.0
+    );
     // The share of last episodes over budget: this walk's last episode pays
     // 2 (budget 1), a costless walk's nothing; a cost at the budget is within it.
     let mut over = t.clone();
@@ -562,10 +566,6 @@ fn the_repeat_price_charges_only_costs_paid_again_in_a_later_episode() {
     assert_eq!(last_over_budget(&[over.clone(), cell_walk()]), 0.5);
     over.episode_costs[2] = 1.0;
     assert_eq!(last_over_budget(&[over]), 0.0);
-    assert_eq!(
-        repeat_cost_per_episode(&[t.clone(), cell_walk()], 2, 0.5),
-        1.0 / 6.0
-    );
     let spec = grid_spec();
     let rewards = |cfg: &EppoConfig| {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
