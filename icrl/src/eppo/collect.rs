@@ -210,7 +210,7 @@ fn round_stats(
 /// The share of `trajs` whose last episode's cost passed the budget.
 pub(super) fn last_over_budget(trajs: &[Trajectory]) -> f64 {
     mean(trajs.iter().map(|t| {
-        let over = t.episode_costs.last().is_some_and(|&c| c > t.budget);
+        let over = t.episodes_over_budget().last().unwrap_or(false);
         if over { 1.0 } else { 0.0 }
     }))
 }

@@ -13,7 +13,7 @@ use safety_envs::EnvError;
 
 use super::multiplier::Gains;
 use super::net::NetSpec;
-use super::replay::{OverBudget, Shaping};
+use super::replay::{BudgetInTargets, OverBudget, Shaping};
 use crate::checkpoint::{CheckpointError, Retention};
 use crate::model::{self, ModelError};
 
@@ -341,9 +341,11 @@ pub struct EppoConfig {
     #[serde(default, alias = "saute_cost_price")]
     pub over_budget_cost_price: f64,
     /// `penalty = "terminate"`: the reward the critics see on top of the step
-    /// that overspends, where their value ends (Sun et al.'s r_e, at most 0:
-    /// every reward here is at least 0, so ending the value already costs
-    /// what the rest of the trajectory was worth).
+    /// where their value ends: the step that overspends or, under
+    /// `repeat_cost_radius`, an episode's first repeated cost over budget.
+    /// Sun et al.'s r_e, at most 0: every reward here is at least 0, so
+    /// ending the value already costs what the rest of the trajectory was
+    /// worth.
     #[serde(default)]
     pub termination_reward: f64,
     /// Later prices: each `{ after = N, price = P }` charges P per unit of
@@ -364,7 +366,11 @@ pub struct EppoConfig {
     /// `penalty = "excess"`: when > 0, the price falls only on repeated
     /// costs, those paid within this distance (of the position at
     /// observation indices 0 and 1) of where the trajectory paid a cost in
-    /// an earlier episode; costs met for the first time stay free. With the
+    /// an earlier episode; costs met for the first time stay free.
+    /// `penalty = "terminate"`: the value ends at an episode's first repeated
+    /// cost over budget instead of at the step that overspends (on Point no
+    /// measured difference: most over-budget costs are repeats,
+    /// results/eppo_point_ladder, pt4). With the
     /// lidar off, a robot learns where the hazards are only by entering
     /// them, and pricing those first costs priced search: return fell and
     /// cost did not (Point, pc1-pc6). Yet 77% of the cost ps9 paid at
@@ -825,11 +831,13 @@ impl EppoConfig {
                 self.repeat_cost_radius
             ));
         }
-        if self.repeat_cost_radius > 0.0 && self.penalty != PenaltyForm::Excess {
+        if self.repeat_cost_radius > 0.0
+            && !matches!(self.penalty, PenaltyForm::Excess | PenaltyForm::Terminate)
+        {
             return bad(
-                "repeat_cost_radius > 0 narrows the over-budget price of penalty = \"excess\" to \
-                 repeated costs: set penalty = \"excess\" (with over_budget_cost_price > 0), or \
-                 set repeat_cost_radius = 0"
+                "repeat_cost_radius > 0 narrows the over-budget price of penalty = \"excess\", \
+                 or the termination of penalty = \"terminate\", to repeated costs: set one of \
+                 them, or set repeat_cost_radius = 0"
                     .to_string(),
             );
         }
@@ -1004,21 +1012,22 @@ impl EppoConfig {
         let cost_price = self.over_budget_price(updates.saturating_sub(since)) as f32;
         Shaping {
             novelty: self.novelty_weight(updates) as f32,
-            over_budget: match self.penalty {
-                PenaltyForm::Saute => Some(OverBudget {
+            budget: match self.penalty {
+                PenaltyForm::Saute => BudgetInTargets::OverBudget(OverBudget {
                     replaced_reward: Some(self.saute_unsafe_reward as f32),
                     cost_price,
                     pays_novelty: false,
                 }),
-                PenaltyForm::Excess => Some(OverBudget {
+                PenaltyForm::Excess => BudgetInTargets::OverBudget(OverBudget {
                     replaced_reward: None,
                     cost_price,
                     pays_novelty: self.novelty_budget != NoveltyBudget::WithinBudget,
                 }),
-                PenaltyForm::Hindsight | PenaltyForm::Hinge | PenaltyForm::Terminate => None,
+                PenaltyForm::Terminate => {
+                    BudgetInTargets::EndsValue(self.termination_reward as f32)
+                }
+                PenaltyForm::Hindsight | PenaltyForm::Hinge => BudgetInTargets::Absent,
             },
-            overspending_ends_value: (self.penalty == PenaltyForm::Terminate)
-                .then_some(self.termination_reward as f32),
         }
     }
 

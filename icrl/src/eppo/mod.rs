@@ -406,7 +406,7 @@ impl Learner {
     pub fn over_budget_price(&self) -> f64 {
         self.cfg
             .shaping(self.updates, self.constraint_since())
-            .over_budget
+            .over_budget()
             .map_or(0.0, |o| f64::from(o.cost_price))
     }
 
@@ -418,10 +418,17 @@ impl Learner {
             PenaltyForm::Excess | PenaltyForm::Saute => {
                 format!("over-budget price {:.2}", self.over_budget_price())
             }
-            PenaltyForm::Terminate => format!(
-                "overspending ends the value (termination reward {:.2})",
-                self.cfg.termination_reward
-            ),
+            PenaltyForm::Terminate => {
+                let cut = if self.cfg.repeat_cost_radius > 0.0 {
+                    "a repeated cost over budget"
+                } else {
+                    "overspending"
+                };
+                format!(
+                    "{cut} ends the value (termination reward {:.2})",
+                    self.cfg.termination_reward
+                )
+            }
             PenaltyForm::Hindsight | PenaltyForm::Hinge => {
                 format!("lambda {:.4}", self.multiplier.lambda)
             }

@@ -70,13 +70,25 @@ impl Trajectory {
             .fold(f32::NEG_INFINITY, f32::max)
     }
 
+    /// Whether the episode's budget is spent once `step` has paid its cost
+    /// (the CTG after the step below 0).
+    pub fn budget_spent_after(&self, step: usize) -> bool {
+        self.ctg[step] - self.costs[step] < 0.0
+    }
+
+    /// Per episode, whether its cost passed the budget (the violation flag).
+    pub fn episodes_over_budget(&self) -> impl Iterator<Item = bool> + '_ {
+        self.episode_costs.iter().map(|&c| c > self.budget)
+    }
+
     /// The share of episodes k > K/2 whose cost exceeded the budget.
     pub fn late_over_budget_rate(&self) -> f32 {
-        let late = &self.episode_costs[self.episode_costs.len() / 2..];
-        if late.is_empty() {
+        let k = self.episode_costs.len();
+        if k == 0 {
             return 0.0;
         }
-        late.iter().filter(|&&c| c > self.budget).count() as f32 / late.len() as f32
+        let late = self.episodes_over_budget().skip(k / 2).filter(|&over| over);
+        late.count() as f32 / (k - k / 2) as f32
     }
 
     /// The trajectory's term in the multiplier's update under `signal`.
@@ -451,6 +463,24 @@ pub(super) fn repeated_costs(t: &Trajectory, obs_dim: usize, radius: f64) -> Vec
         .collect()
 }
 
+/// For each step of `t`, true where the termination ends the critics'
+/// value ([`EppoConfig::termination_reward`]): in each episode, the first step
+/// over budget that pays a cost that counts, every cost or, given `repeated`,
+/// a repeated one. Without `repeated` that is the step that overspends.
+pub(super) fn value_end_steps(t: &Trajectory, repeated: Option<&[bool]>) -> Vec<bool> {
+    let mut ended_in = None;
+    (0..t.len())
+        .map(|step| {
+            let counts = repeated.map_or(t.costs[step] > 0.0, |r| r[step]);
+            let ends = t.budget_spent_after(step) && counts && ended_in != Some(t.episode[step]);
+            if ends {
+                ended_in = Some(t.episode[step]);
+            }
+            ends
+        })
+        .collect()
+}
+
 /// For each step of `t`, 1 where it arrives in a cell (side `cell`, on the
 /// position at observation indices 0 and 1) that the trajectory has not been
 /// in before, episode starts included, up to its first success (0 after it,
@@ -483,13 +513,43 @@ pub(super) fn novel_arrivals(
 pub(super) struct Shaping {
     /// The novelty bonus's weight (annealed).
     pub(super) novelty: f32,
+    /// How the budget acts in the critics' targets.
+    pub(super) budget: BudgetInTargets,
+}
+
+/// The budget's part in the critics' targets, by penalty form.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub(super) enum BudgetInTargets {
+    /// None: the forms that act through the actor's multiplier, and every
+    /// form before the constraint starts.
+    #[default]
+    Absent,
     /// Saute and the excess price: the reward of every step of an episode
     /// once its cost has passed its budget (CTG after the step below 0).
-    pub(super) over_budget: Option<OverBudget>,
+    OverBudget(OverBudget),
     /// `penalty = "terminate"`: the reward added where an episode's cost
-    /// first passes its budget, the step at which the reward and novelty
-    /// critics' value ends.
-    pub(super) overspending_ends_value: Option<f32>,
+    /// first passes its budget (under a repeat radius, at its first repeated
+    /// cost over budget), the step at which the reward and novelty critics'
+    /// value ends.
+    EndsValue(f32),
+}
+
+impl Shaping {
+    /// The over-budget reward, under the forms that price cost.
+    pub(super) fn over_budget(&self) -> Option<OverBudget> {
+        match self.budget {
+            BudgetInTargets::OverBudget(o) => Some(o),
+            _ => None,
+        }
+    }
+
+    /// The termination's reward, under `penalty = "terminate"`.
+    pub(super) fn value_end_reward(&self) -> Option<f32> {
+        match self.budget {
+            BudgetInTargets::EndsValue(r) => Some(r),
+            _ => None,
+        }
+    }
 }
 
 /// The reward of a step taken over budget: `r - cost_price x c`, where r is
@@ -532,8 +592,9 @@ pub(super) fn make_batch(
     let mut goal_known = vec![0f32; b * l];
     let zeros_a = vec![0f32; a];
     let zeros_o = vec![0f32; spec.obs_dim];
+    let over_budget = shaping.over_budget();
     for (j, (t, &(s, len))) in trajs.iter().zip(&windows).enumerate() {
-        let violated: Vec<bool> = t.episode_costs.iter().map(|&c| c > t.budget).collect();
+        let violated: Vec<bool> = t.episodes_over_budget().collect();
         let novel = if shaping.novelty > 0.0 {
             novel_arrivals(
                 t,
@@ -544,9 +605,13 @@ pub(super) fn make_batch(
         } else {
             vec![0.0; t.len()]
         };
-        // Under the repeat price, the steps whose cost the price may charge.
+        // Under a repeat radius, the steps whose cost the price or the
+        // termination may act on.
         let repeated = (cfg.repeat_cost_radius > 0.0)
             .then(|| repeated_costs(t, spec.obs_dim, cfg.repeat_cost_radius));
+        let value_ends = shaping
+            .value_end_reward()
+            .map(|end_reward| (end_reward, value_end_steps(t, repeated.as_deref())));
         let mut found = false;
         for i in 0..l {
             let k = j * l + i;
@@ -600,8 +665,7 @@ pub(super) fn make_batch(
             } else {
                 dense_reward(t, step, spec, cfg)
             };
-            let budget_spent = t.ctg[step] - t.costs[step] < 0.0;
-            let overspends = budget_spent && t.ctg[step] >= 0.0;
+            let budget_spent = t.budget_spent_after(step);
             let priced_cost = match &repeated {
                 Some(repeated) if !repeated[step] => 0.0,
                 _ => t.costs[step],
@@ -616,7 +680,7 @@ pub(super) fn make_batch(
             // the episode's budget is spent, unless the price leaves it).
             let priced = |bonus: f32| {
                 let shaped = t.rewards[step] + dense + bonus;
-                match shaping.over_budget {
+                match over_budget {
                     Some(o) if budget_spent => {
                         let kept = if o.pays_novelty {
                             shaped
@@ -630,13 +694,13 @@ pub(super) fn make_batch(
             };
             let scale = cfg.reward_scale as f32;
             if cfg.novelty_critic {
-                let paid = match shaping.over_budget {
+                let paid = match over_budget {
                     Some(o) if budget_spent && (o.replaced_reward.is_some() || !o.pays_novelty) => {
                         0.0
                     }
                     _ => novelty,
                 };
-                let charged = match shaping.over_budget {
+                let charged = match over_budget {
                     Some(o) if budget_spent && cfg.novelty_pays_price => o.cost_price * priced_cost,
                     _ => 0.0,
                 };
@@ -656,8 +720,8 @@ pub(super) fn make_batch(
             goal_known[k] = if found { 1.0 } else { 0.0 };
             found |= t.terminated[step];
             let (has_target, mut bootstraps, cost_bootstraps) = td_masks(cfg, t, step, i + 1 < len);
-            if let Some(end_reward) = shaping.overspending_ends_value
-                && overspends
+            if let Some((end_reward, ends)) = &value_ends
+                && ends[step]
             {
                 rew[k] += end_reward * scale;
                 bootstraps = false;

@@ -359,9 +359,8 @@ fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
     let batch = |cfg: &EppoConfig, novelty: f32| {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let shaping = Shaping {
-            overspending_ends_value: None,
             novelty,
-            over_budget: None,
+            budget: BudgetInTargets::Absent,
         };
         make_batch(&[&t], cfg, &spec, shaping, &mut rng, Device::Cpu)
     };
@@ -422,9 +421,8 @@ fn novelty_critics_take_the_bonus_out_of_the_reward_critics() {
     let batch = |cfg: &EppoConfig, over_budget: Option<OverBudget>| {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let shaping = Shaping {
-            overspending_ends_value: None,
             novelty: 0.1,
-            over_budget,
+            budget: over_budget.map_or(BudgetInTargets::Absent, BudgetInTargets::OverBudget),
         };
         make_batch(&[&t], cfg, &spec, shaping, &mut rng, Device::Cpu)
     };
@@ -570,9 +568,8 @@ fn the_repeat_price_charges_only_costs_paid_again_in_a_later_episode() {
     let rewards = |cfg: &EppoConfig| {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let shaping = Shaping {
-            overspending_ends_value: None,
             novelty: cfg.novelty_bonus as f32,
-            over_budget: Some(OverBudget {
+            budget: BudgetInTargets::OverBudget(OverBudget {
                 replaced_reward: None,
                 cost_price: 2.0,
                 pays_novelty: true,

@@ -34,7 +34,7 @@ fn priced_from_update_100(form: PenaltyForm) -> EppoConfig {
         Some(100)
     );
     assert_eq!(
-        cfg.shaping(99, None).over_budget,
+        cfg.shaping(99, None).over_budget(),
         None,
         "not before the constraint"
     );
@@ -148,7 +148,7 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
     cfg.saute_unsafe_reward = -0.25;
     cfg.validate().unwrap();
     assert_eq!(
-        cfg.shaping(100, Some(100)).over_budget,
+        cfg.shaping(100, Some(100)).over_budget(),
         Some(OverBudget {
             replaced_reward: Some(-0.25),
             cost_price: 2.0,
@@ -156,9 +156,8 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
         })
     );
     let over_budget = |reward: f32, cost_price: f32| Shaping {
-        overspending_ends_value: None,
         novelty: 0.0,
-        over_budget: Some(OverBudget {
+        budget: BudgetInTargets::OverBudget(OverBudget {
             replaced_reward: Some(reward),
             cost_price,
             pays_novelty: false,
@@ -194,7 +193,7 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
     );
     // Under another penalty form the same settings shape nothing.
     cfg.penalty = PenaltyForm::Hindsight;
-    assert_eq!(cfg.shaping(100, Some(100)).over_budget, None);
+    assert_eq!(cfg.shaping(100, Some(100)).over_budget(), None);
     assert_no_actor_penalty(PenaltyForm::Saute);
 }
 
@@ -225,7 +224,7 @@ fn excess_price_charges_each_unit_past_the_budget_and_keeps_the_goal() {
     cfg.validate().unwrap();
     let shaping = cfg.shaping(100, Some(100));
     assert_eq!(
-        shaping.over_budget,
+        shaping.over_budget(),
         Some(OverBudget {
             replaced_reward: None,
             cost_price: 2.0,
@@ -267,10 +266,10 @@ fn termination_ends_the_critics_value_at_the_step_that_overspends() {
     let mut cfg = priced_from_update_100(PenaltyForm::Terminate);
     cfg.termination_reward = -0.5;
     cfg.validate().unwrap();
-    assert_eq!(cfg.shaping(99, None).overspending_ends_value, None);
+    assert_eq!(cfg.shaping(99, None).value_end_reward(), None);
     let shaping = cfg.shaping(100, Some(100));
-    assert_eq!(shaping.overspending_ends_value, Some(-0.5));
-    assert_eq!(shaping.over_budget, None, "no price per unit");
+    assert_eq!(shaping.value_end_reward(), Some(-0.5));
+    assert_eq!(shaping.over_budget(), None, "no price per unit");
     let batch = |shaping: Shaping| {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         make_batch(&[&t], &cfg, &spec, shaping, &mut rng, Device::Cpu)
@@ -295,6 +294,31 @@ fn termination_ends_the_critics_value_at_the_step_that_overspends() {
     assert_eq!(to_vec(&ended.costs), t.costs, "costs as paid");
     assert_eq!(to_vec(&ended.cost_bootstrap), to_vec(&plain.cost_bootstrap));
     assert_no_actor_penalty(PenaltyForm::Terminate);
+    // Under a repeat radius only a repeated cost over budget ends the value:
+    // step 3 (episode 1) arrives 1 from step 1's cost in episode 0; step 2's
+    // cost is in episode 0, which has no earlier episode to repeat.
+    for (radius, ends) in [(1.5, vec![3]), (0.5, vec![])] {
+        let repeats = EppoConfig {
+            repeat_cost_radius: radius,
+            ..cfg.clone()
+        };
+        repeats.validate().unwrap();
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        let b = make_batch(&[&t], &repeats, &spec, shaping, &mut rng, Device::Cpu);
+        let cut: Vec<usize> = (0..t.len())
+            .filter(|&step| to_vec(&b.bootstrap)[step] != before[step])
+            .collect();
+        assert_eq!(cut, ends, "radius {radius}");
+        let end_rewards = to_vec(&b.rewards).iter().filter(|&&r| r < 0.0).count();
+        assert_eq!(end_rewards, ends.len(), "radius {radius}");
+        let reading = Learner::new(repeats, EnvName::DarkRoom)
+            .unwrap()
+            .penalty_reading();
+        assert!(
+            reading.starts_with("a repeated cost over budget ends"),
+            "{reading}"
+        );
+    }
     // The multiplier must stay at 0.
     cfg.lambda_lr = 0.01;
     let err = cfg.validate().unwrap_err().to_string();
@@ -342,7 +366,7 @@ fn the_price_schedule_counts_updates_from_the_constraints_start() {
     cfg.validate().unwrap();
     let price_at = |updates: u64, since: Option<u64>| {
         cfg.shaping(updates, since)
-            .over_budget
+            .over_budget()
             .map(|o| o.cost_price)
     };
     assert_eq!(price_at(99, None), None, "nothing before the start");
@@ -445,7 +469,7 @@ fn the_price_ramp_moves_linearly_from_the_start_price_through_each_change() {
     cfg.validate().unwrap();
     let price_at = |updates: u64| {
         cfg.shaping(updates, Some(100))
-            .over_budget
+            .over_budget()
             .map(|o| o.cost_price)
     };
     // 2.0 at the start, 3.0 at 50 updates past it, 6.0 at 80 and after.

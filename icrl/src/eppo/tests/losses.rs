@@ -95,9 +95,8 @@ fn the_actor_weighs_the_novelty_critics_only_before_a_success() {
     };
     cfg.model.embd_dropout = 0.0;
     let shaping = Shaping {
-        overspending_ends_value: None,
         novelty: 0.1,
-        over_budget: None,
+        budget: BudgetInTargets::Absent,
     };
     // A discrete learner on SafeDarkRoom's cells, and a continuous net.
     let discrete = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
