@@ -1,28 +1,55 @@
 //! [`GoalShown`]: any environment with its goal's position appended to every
-//! observation. The debugging ladder's goal-conditioned rung: an agent that
-//! sees the goal needs no memory to reach it, so its success separates
-//! learning to drive to a position from learning to recall one from context.
-//! Never for evaluation: the tasks promise a goal the agent must find.
+//! observation, with a flag that says it is shown. The debugging ladder's
+//! goal-conditioned rung: an agent that sees the goal needs no memory to
+//! reach it, so its success separates learning to drive to a position from
+//! learning to recall one from context. A trainer may blank the slots
+//! ([`GoalShown::hide`]) in some trajectories, so that one policy learns both
+//! to drive to a shown goal and to find one; evaluation's tasks always hide it.
 
 use crate::env::{Action, CmdpEnv, GoalRule, Space, StepOutcome};
 use crate::error::EnvError;
 use crate::spawn::Task;
 
-/// `inner` with [`CmdpEnv::goal_position`] as two extra observation entries.
+/// `inner` with [`CmdpEnv::goal_position`] and the flag 1 as
+/// [`GoalShown::SLOTS`] extra observation entries.
 pub struct GoalShown {
     inner: Box<dyn CmdpEnv>,
     inner_dim: usize,
 }
 
 impl GoalShown {
-    /// Wraps `inner`; its observation grows by two entries at the end.
+    /// The entries appended to the observation: the goal's x and y, then 1
+    /// (shown). Hidden, all three are 0: the flag tells a goal at the origin
+    /// from none.
+    pub const SLOTS: usize = 3;
+
+    /// Wraps `inner`; its observation grows by [`GoalShown::SLOTS`] entries at
+    /// the end.
     pub fn new(inner: Box<dyn CmdpEnv>) -> Self {
         let inner_dim = inner.observation_space().flat_dim();
         GoalShown { inner, inner_dim }
     }
 
+    /// Blanks the goal's slots at the end of one observation `row` of this
+    /// wrapper's (or of a wider agent's) layout: the goal hidden.
+    pub fn hide(row: &mut [f32]) {
+        let n = row.len();
+        row[n - Self::SLOTS..].fill(0.0);
+    }
+
+    /// Whether `row`'s slots show a goal (its flag is set).
+    pub fn shows(row: &[f32]) -> bool {
+        row[row.len() - 1] > 0.5
+    }
+
+    /// Writes `goal` into `row`'s slots, shown.
+    pub fn show(row: &mut [f32], goal: [f32; 2]) {
+        let n = row.len();
+        row[n - Self::SLOTS..].copy_from_slice(&[goal[0], goal[1], 1.0]);
+    }
+
     fn show_goal(&self, obs: &mut [f32]) {
-        obs[self.inner_dim..].copy_from_slice(&self.inner.goal_position());
+        Self::show(obs, self.inner.goal_position());
     }
 }
 
@@ -31,11 +58,13 @@ impl CmdpEnv for GoalShown {
         let Space::Box { mut low, mut high } = self.inner.observation_space() else {
             unreachable!("observation spaces are boxes (CmdpEnv)")
         };
-        // The goal lies where the agent's position can.
+        // The goal lies where the agent's position can; the flag is 0 or 1.
         for i in self.inner.goal_rule().xy {
             low.push(low[i]);
             high.push(high[i]);
         }
+        low.push(0.0);
+        high.push(1.0);
         Space::Box { low, high }
     }
 
@@ -94,24 +123,27 @@ mod tests {
     use crate::make::{EnvName, EnvOptions, make_env, spawn_config};
     use crate::spawn::{Orientation, sample_task};
 
-    /// The goal rides at the end of every observation, the rest is the
-    /// inner environment's, bit for bit, and it follows a new task.
+    /// The goal and its flag ride at the end of every observation, the rest
+    /// is the inner environment's, bit for bit, and it follows a new task;
+    /// hidden, the slots are zeros and the flag reads so.
     #[test]
     fn the_goal_is_appended_and_follows_the_task() {
         for name in [EnvName::DarkRoom, EnvName::Point] {
             let make = || make_env(name, &EnvOptions::default()).unwrap();
             let (mut plain, mut shown) = (make(), GoalShown::new(make()));
             let n = plain.observation_space().flat_dim();
-            assert_eq!(shown.observation_space().flat_dim(), n + 2, "{name}");
+            assert_eq!(shown.observation_space().flat_dim(), n + 3, "{name}");
             for seed in [3, 4] {
                 let task = sample_task(&spawn_config(name), Orientation::Centre, seed).unwrap();
                 plain.set_task(&task).unwrap();
                 shown.set_task(&task).unwrap();
-                let (mut a, mut b) = (vec![0.0; n], vec![0.0; n + 2]);
+                let (mut a, mut b) = (vec![0.0; n], vec![0.0; n + 3]);
                 plain.reset(7, &mut a).unwrap();
                 shown.reset(7, &mut b).unwrap();
                 assert_eq!(a[..], b[..n], "{name}: the inner observation unchanged");
-                assert_eq!(b[n..], plain.goal_position(), "{name}: the goal appended");
+                let goal = plain.goal_position();
+                assert_eq!(b[n..], [goal[0], goal[1], 1.0], "{name}: the goal appended");
+                assert!(GoalShown::shows(&b));
                 let action = match plain.action_space() {
                     Space::Discrete { .. } => vec![],
                     Space::Box { low, .. } => vec![0.5; low.len()],
@@ -123,7 +155,11 @@ mod tests {
                 let (ra, rb) = (act(plain.as_mut(), &mut a), act(&mut shown, &mut b));
                 assert_eq!(ra, rb, "{name}: the same outcome");
                 assert_eq!(a[..], b[..n], "{name}: the inner observation after a step");
-                assert_eq!(b[n..], plain.goal_position(), "{name}");
+                assert_eq!(b[n..n + 2], plain.goal_position(), "{name}");
+                GoalShown::hide(&mut b);
+                assert_eq!(b[..n], a[..], "{name}: hiding keeps the rest");
+                assert_eq!(b[n..], [0.0; 3], "{name}");
+                assert!(!GoalShown::shows(&b));
             }
         }
     }

@@ -13,6 +13,7 @@ use super::config::{EppoConfig, EppoError, memory_estimate};
 use super::net::{EppoNet, NetSpec};
 use crate::agent::{Actions, AgentError, Conditioning, InContextAgent, StepInput};
 use crate::checkpoint::{CheckpointError, RunDir, read_manifest};
+use safety_envs::GoalShown;
 
 /// A pretrained EPPO policy, frozen, acting through the KV cache.
 pub struct EppoAgent {
@@ -59,14 +60,16 @@ impl EppoAgent {
             .map_err(|e| bad("state.json", e.to_string()))?;
         let state: TrainState =
             serde_json::from_str(&text).map_err(|e| bad("state.json", e.to_string()))?;
-        if cfg.goal_in_observation {
+        if cfg.goal_in_observation && cfg.goal_hidden_share == 0.0 {
             return Err(EppoError::Checkpoint(CheckpointError::Invalid {
                 path: dir.join("config.toml"),
-                problem: "it was trained with goal_in_observation = true, a debugging-ladder \
-                          rung whose agent is shown the goal; the tasks it would be evaluated \
-                          on hide it"
+                problem: "it was trained with goal_in_observation = true and goal_hidden_share \
+                          = 0, a debugging-ladder rung whose agent is always shown the goal; \
+                          the tasks it would be evaluated on hide it"
                     .into(),
-                fix: "evaluate a checkpoint trained without goal_in_observation".into(),
+                fix: "evaluate a checkpoint trained without goal_in_observation, or with \
+                      goal_hidden_share > 0"
+                    .into(),
             }));
         }
         // The files decide sizes: check them before building anything.
@@ -121,6 +124,20 @@ impl EppoAgent {
         &self.cfg
     }
 
+    /// The observation width it takes from the environment: its network's,
+    /// less the goal slots it fills blank itself (`goal_in_observation`).
+    pub fn env_obs_dim(&self) -> usize {
+        self.spec.obs_dim - self.goal_slots()
+    }
+
+    fn goal_slots(&self) -> usize {
+        if self.cfg.goal_in_observation {
+            GoalShown::SLOTS
+        } else {
+            0
+        }
+    }
+
     /// Reseeds action sampling.
     pub fn set_seed(&mut self, seed: u64) {
         self.rng = ChaCha8Rng::seed_from_u64(seed);
@@ -143,15 +160,17 @@ impl InContextAgent for EppoAgent {
     }
 
     fn act(&mut self, input: &StepInput<'_>, greedy: bool) -> Result<Actions, AgentError> {
+        // Trained with goal slots, it sees them blank: the tasks hide the goal.
+        let (slots, env_od) = (self.goal_slots(), self.env_obs_dim());
         let acting = self
             .acting
             .as_mut()
             .ok_or_else(|| AgentError::Input("act before reset".into()))?;
         let b = acting.budgets.len();
-        let (od, a) = (self.spec.obs_dim, self.spec.act_flat());
+        let a = self.spec.act_flat();
         let sizes = [
-            ("obs", input.obs.len(), b * od),
-            ("arrived_obs", input.arrived_obs.len(), b * od),
+            ("obs", input.obs.len(), b * env_od),
+            ("arrived_obs", input.arrived_obs.len(), b * env_od),
             ("prev_action", input.prev_action.len(), b * a),
             ("reward", input.reward.len(), b),
             ("cost", input.cost.len(), b),
@@ -182,7 +201,15 @@ impl InContextAgent for EppoAgent {
                 })
                 .collect(),
         };
+        let blank_slots = |rows: &[f32]| -> Vec<f32> {
+            rows.chunks(env_od)
+                .flat_map(|row| row.iter().copied().chain(std::iter::repeat_n(0.0, slots)))
+                .collect()
+        };
+        let (obs, arrived_obs) = (blank_slots(input.obs), blank_slots(input.arrived_obs));
         let input = StepInput {
+            obs: &obs,
+            arrived_obs: &arrived_obs,
             prev_action: &prev,
             ..*input
         };

@@ -9,7 +9,7 @@ use tch::{Device, Kind, Tensor};
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use safety_envs::{EnvName, Orientation, VecAction, VecEnv, sample_task, spawn_config};
+use safety_envs::{EnvName, GoalShown, Orientation, VecAction, VecEnv, sample_task, spawn_config};
 
 use super::Learner;
 use super::config::{EppoConfig, EppoError};
@@ -286,9 +286,15 @@ impl Collector<'_> {
                         || self.rng.r#gen::<f64>() < self.cfg.scripted_share)
             })
             .collect();
+        // Drawn only while some goal is hidden, so other runs keep their stream.
+        let hide_share = self.cfg.goal_hidden_share_at(*self.env_steps);
+        let hidden: Vec<bool> = (0..n)
+            .map(|_| hide_share > 0.0 && self.rng.r#gen::<f64>() < hide_share)
+            .collect();
         let mut active = vec![true; n];
         let (od, a) = (self.spec.obs_dim, self.spec.act_flat());
         let mut obs = venv.observations().to_vec();
+        hide_goals(&mut obs, od, &hidden);
         let mut arrived = vec![0f32; n * od];
         let mut prev_action = vec![0f32; n * a];
         let (mut reward, mut cost, mut start) = (vec![0f32; n], vec![0f32; n], vec![true; n]);
@@ -358,6 +364,7 @@ impl Collector<'_> {
                 },
             )?;
             obs.copy_from_slice(venv.observations());
+            hide_goals(&mut obs, od, &hidden);
             for i in 0..n {
                 let o = outcomes[i];
                 // Where the action led: the final observation when it ended
@@ -367,7 +374,11 @@ impl Collector<'_> {
                 } else {
                     venv.observations()
                 };
-                arrived[i * od..(i + 1) * od].copy_from_slice(&reached[i * od..(i + 1) * od]);
+                let arrived_row = &mut arrived[i * od..(i + 1) * od];
+                arrived_row.copy_from_slice(&reached[i * od..(i + 1) * od]);
+                if hidden[i] {
+                    GoalShown::hide(arrived_row);
+                }
                 reward[i] = o.reward;
                 cost[i] = o.cost;
                 start[i] = o.done();
@@ -614,6 +625,14 @@ pub(super) fn sample_actions(
             }
             (net, EnvActions::Continuous(env))
         }
+    }
+}
+
+/// Blanks the goal slots (`goal_in_observation`) of the rows of `obs`, each
+/// `od` wide, whose trajectory hides its goal.
+fn hide_goals(obs: &mut [f32], od: usize, hidden: &[bool]) {
+    for (row, _) in obs.chunks_mut(od).zip(hidden).filter(|(_, h)| **h) {
+        GoalShown::hide(row);
     }
 }
 

@@ -237,10 +237,25 @@ pub struct EppoConfig {
     /// The ladder's goal-conditioned rung: the goal's position appended to
     /// every observation (`safety_envs::GoalShown`), so reaching it needs no
     /// memory; its success against the shown-goal rung's separates driving
-    /// to a position from recalling one. Such a checkpoint cannot be
+    /// to a position from recalling one. Alone, such a checkpoint cannot be
     /// evaluated (the tasks hide the goal). Off in every preset.
     #[serde(default)]
     pub goal_in_observation: bool,
+    /// With `goal_in_observation`: the share of trajectories whose goal
+    /// slots are blanked (hidden) once `goal_hidden_ramp` ends, rising
+    /// linearly from 0 across it. Car drives to a shown goal within 4000
+    /// updates (cg1) but never learned to drive back to one it found; here one
+    /// policy learns the first and must then read the goal from its context
+    /// in a growing share of trajectories, the blank slots standing for
+    /// "find it". A checkpoint trained with hidden goals is evaluated with
+    /// the slots blank. 0: always shown.
+    #[serde(default)]
+    pub goal_hidden_share: f64,
+    /// Environment steps `[from, until]` over which the hidden share rises
+    /// from 0 to `goal_hidden_share` (environment steps, as the exploration
+    /// schedule, so that collection alone decides it).
+    #[serde(default)]
+    pub goal_hidden_ramp: [u64; 2],
     /// Add to each token's embedding a sinusoid of the step's index within
     /// its episode (0 at the episode's first step), beside the model's
     /// position in the whole trajectory. Every robot episode starts from the
@@ -674,6 +689,7 @@ impl EppoConfig {
             ("novelty_cell", self.novelty_cell, Range::POSITIVE),
             ("novelty_rise", self.novelty_rise, Range::NON_NEGATIVE),
             ("scripted_share", self.scripted_share, Range::UNIT),
+            ("goal_hidden_share", self.goal_hidden_share, Range::UNIT),
             (
                 "saute_unsafe_reward",
                 self.saute_unsafe_reward,
@@ -831,6 +847,19 @@ impl EppoConfig {
                 self.repeat_cost_radius
             ));
         }
+        if self.goal_hidden_share > 0.0 && !self.goal_in_observation {
+            return bad(
+                "goal_hidden_share > 0 hides the goal slots of goal_in_observation in some \
+                 trajectories: set goal_in_observation = true, or goal_hidden_share = 0"
+                    .to_string(),
+            );
+        }
+        if self.goal_hidden_ramp[0] > self.goal_hidden_ramp[1] {
+            return bad(format!(
+                "goal_hidden_ramp = {:?} must rise ([from, until] environment steps, from <= until)",
+                self.goal_hidden_ramp
+            ));
+        }
         if self.repeat_cost_radius > 0.0
             && !matches!(self.penalty, PenaltyForm::Excess | PenaltyForm::Terminate)
         {
@@ -966,6 +995,20 @@ impl EppoConfig {
             newest: self.keep_checkpoints,
             every: self.keep_every,
         }
+    }
+
+    /// The share of trajectories collected after `env_steps` environment
+    /// steps whose goal is hidden (`goal_hidden_share`, `goal_hidden_ramp`).
+    pub fn goal_hidden_share_at(&self, env_steps: u64) -> f64 {
+        let [from, until] = self.goal_hidden_ramp;
+        let ramp = if env_steps >= until {
+            1.0
+        } else if env_steps <= from {
+            0.0
+        } else {
+            (env_steps - from) as f64 / (until - from) as f64
+        };
+        self.goal_hidden_share * ramp
     }
 
     /// The novelty bonus's weight after `updates` updates (annealed).

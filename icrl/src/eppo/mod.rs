@@ -69,9 +69,11 @@
 //! shared transformer), a sinusoid of each step's index within its episode
 //! added to the token's embedding (`episode_positions`: every episode starts
 //! from the same pose, so the same moment of a successful episode is the
-//! one to recall) and, as a diagnostic never
-//! evaluated, the goal in the observation (`goal_in_observation`: driving to
-//! a position without recalling it).
+//! one to recall) and the goal in the observation (`goal_in_observation`:
+//! driving to a position without recalling it; a diagnostic never evaluated,
+//! unless `goal_hidden_share` hides it in a share of the trajectories that
+//! rises over training, so that one policy learns to drive to a shown goal
+//! and then to read a found one from its context).
 //!
 //! Levers for the budget ladder (results/eppo_darkroom_budget), likewise off
 //! until measured: behaviour noise capped once a trajectory has found its goal
@@ -296,6 +298,7 @@ impl Learner {
             self.cfg.relabel_prob,
             &self.spec,
             &self.goal_rule,
+            self.cfg.goal_in_observation,
             &mut self.rng,
         );
         let trajs: Vec<&Trajectory> = sampled

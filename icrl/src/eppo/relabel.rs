@@ -6,7 +6,7 @@
 
 use rand::Rng;
 use rand_chacha::ChaCha8Rng;
-use safety_envs::GoalRule;
+use safety_envs::{GoalRule, GoalShown};
 
 use super::net::NetSpec;
 use super::replay::Trajectory;
@@ -14,11 +14,15 @@ use super::replay::Trajectory;
 /// Each sampled trajectory relabelled, with probability `prob`, at a goal
 /// drawn by [`pick_goal`]; `None` replays it as collected. Draws nothing
 /// when `prob` is 0, so runs without relabelling keep their random stream.
+/// With `goal_slots` (`goal_in_observation`), a trajectory that was shown
+/// its goal is shown the new one, as if collected in the relabelled task;
+/// one that hid it stays blank.
 pub(super) fn relabel_some(
     sampled: &[&Trajectory],
     prob: f64,
     spec: &NetSpec,
     rule: &GoalRule,
+    goal_slots: bool,
     rng: &mut ChaCha8Rng,
 ) -> Vec<Option<Trajectory>> {
     if prob == 0.0 {
@@ -31,7 +35,16 @@ pub(super) fn relabel_some(
                 return None;
             }
             let goal = pick_goal(t, spec.obs_dim, rule, rng)?;
-            Some(relabel(t, spec.obs_dim, spec.act_flat(), rule, goal))
+            let mut out = relabel(t, spec.obs_dim, spec.act_flat(), rule, goal);
+            if goal_slots && GoalShown::shows(&t.obs[..spec.obs_dim]) {
+                for row in out.obs.chunks_mut(spec.obs_dim) {
+                    GoalShown::show(row, goal);
+                }
+                for row in out.next_obs.chunks_mut(spec.obs_dim) {
+                    GoalShown::show(row, goal);
+                }
+            }
+            Some(out)
         })
         .collect()
 }

@@ -10,7 +10,7 @@ use rand::Rng;
 use rand_chacha::ChaCha8Rng;
 use tch::{Device, Tensor};
 
-use safety_envs::GoalRule;
+use safety_envs::{GoalRule, GoalShown};
 
 use super::config::{EppoConfig, NoveltyBudget, ViolationSignal};
 use super::net::NetSpec;
@@ -612,7 +612,9 @@ pub(super) fn make_batch(
         let value_ends = shaping
             .value_end_reward()
             .map(|end_reward| (end_reward, value_end_steps(t, repeated.as_deref())));
-        let mut found = false;
+        // The goal is known once found, or throughout when shown.
+        let mut found =
+            cfg.goal_in_observation && t.obs.get(..spec.obs_dim).is_some_and(GoalShown::shows);
         for i in 0..l {
             let k = j * l + i;
             if i >= len {

@@ -800,14 +800,14 @@ fn the_goal_conditioned_rung_sees_the_goal_and_is_never_evaluated() {
         ..tiny()
     };
     let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
-    assert_eq!(learner.spec.obs_dim, 4, "position and goal");
+    assert_eq!(learner.spec.obs_dim, 5, "position, goal, shown");
     let mut venv = training_venv(EnvName::DarkRoom, &cfg);
     learner.collect(&mut venv).unwrap();
     for t in &learner.replay.trajectories {
-        for step in t.obs.chunks(4) {
+        for step in t.obs.chunks(5).chain(t.next_obs.chunks(5)) {
             assert_eq!(
                 step[2..],
-                t.goal,
+                [t.goal[0], t.goal[1], 1.0],
                 "the goal at the end of every observation"
             );
         }
@@ -826,5 +826,144 @@ fn the_goal_conditioned_rung_sees_the_goal_and_is_never_evaluated() {
         .unwrap()
         .to_string();
     assert!(err.contains("goal_in_observation"), "{err}");
+    std::fs::remove_dir_all(&out).unwrap();
+}
+
+/// The goal hidden in a share of trajectories (`goal_hidden_share`): the
+/// share follows its ramp over environment steps; a hidden trajectory's
+/// slots are blank in every observation and arrival, a shown one's hold its
+/// goal; relabelling shows a shown trajectory its new goal and leaves a
+/// hidden one blank; and the checkpoint acts on the task's own observation,
+/// its slots blank, where one always shown is refused.
+#[test]
+fn hidden_goals_are_blank_throughout_and_such_a_policy_is_evaluated() {
+    let ramp = EppoConfig {
+        goal_in_observation: true,
+        goal_hidden_share: 0.8,
+        goal_hidden_ramp: [100, 300],
+        ..tiny()
+    };
+    let share: Vec<f64> = [0, 100, 200, 300, 1000]
+        .map(|s| ramp.goal_hidden_share_at(s))
+        .to_vec();
+    assert_eq!(share, [0.0, 0.0, 0.4, 0.8, 0.8]);
+    let bad = EppoConfig {
+        goal_in_observation: false,
+        ..ramp.clone()
+    };
+    assert!(
+        bad.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("goal_in_observation")
+    );
+    let bad = EppoConfig {
+        goal_hidden_ramp: [300, 100],
+        ..ramp.clone()
+    };
+    assert!(
+        bad.validate()
+            .unwrap_err()
+            .to_string()
+            .contains("goal_hidden_ramp")
+    );
+
+    let cfg = EppoConfig {
+        goal_hidden_share: 0.5,
+        goal_hidden_ramp: [0, 0],
+        n_envs: 8,
+        batch_size: 8,
+        ..ramp
+    };
+    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+    let mut venv = training_venv(EnvName::DarkRoom, &cfg);
+    for _ in 0..2 {
+        learner.collect(&mut venv).unwrap();
+    }
+    let (mut shown, mut hidden) = (Vec::new(), Vec::new());
+    for t in &learner.replay.trajectories {
+        let rows: Vec<&[f32]> = t.obs.chunks(5).chain(t.next_obs.chunks(5)).collect();
+        if GoalShown::shows(rows[0]) {
+            assert!(rows.iter().all(|r| r[2..] == [t.goal[0], t.goal[1], 1.0]));
+            shown.push(t);
+        } else {
+            assert!(rows.iter().all(|r| r[2..] == [0.0; 3]), "blank throughout");
+            hidden.push(t);
+        }
+    }
+    assert!(
+        shown.len() >= 2 && hidden.len() >= 2,
+        "about half of 16 each: {} shown, {} hidden",
+        shown.len(),
+        hidden.len()
+    );
+    let rule = learner.goal_rule;
+    let mut rng = ChaCha8Rng::seed_from_u64(3);
+    for (t, was_shown) in [(shown[0], true), (hidden[0], false)] {
+        let out = relabel_some(&[t], 1.0, &learner.spec, &rule, true, &mut rng)
+            .pop()
+            .unwrap()
+            .expect("a grid walk reaches somewhere new");
+        assert_ne!(out.goal, t.goal, "moved");
+        let want = if was_shown {
+            [out.goal[0], out.goal[1], 1.0]
+        } else {
+            [0.0; 3]
+        };
+        for r in out.obs.chunks(5).chain(out.next_obs.chunks(5)) {
+            assert_eq!(r[2..], want, "shown: {was_shown}");
+        }
+    }
+
+    // Shown, the goal is known from the first step (the dense reward and the
+    // recall head act there); hidden, only once found.
+    for (t, was_shown) in [(shown[0], true), (hidden[0], false)] {
+        let b = make_batch(
+            &[t],
+            &cfg,
+            &learner.spec,
+            cfg.shaping(0, None),
+            &mut rng,
+            Device::Cpu,
+        );
+        let known = to_vec(&b.goal_known);
+        let first_success = t.terminated.iter().position(|&x| x);
+        for (step, &k) in known.iter().take(t.len()).enumerate() {
+            let want = was_shown || first_success.is_some_and(|s| step > s);
+            assert_eq!(k == 1.0, want, "step {step}, shown: {was_shown}");
+        }
+    }
+
+    let out = std::env::temp_dir().join(format!("icrl-eppo-hidden-{}", std::process::id()));
+    let report = train(&PretrainOptions {
+        env: EnvName::DarkRoom,
+        cfg,
+        out: out.clone(),
+        resume: None,
+        progress: false,
+    })
+    .unwrap();
+    let mut agent = EppoAgent::load(&report.last_checkpoint, Device::Cpu).unwrap();
+    assert_eq!(agent.env_obs_dim(), 2, "the grid's own position");
+    agent.reset(&[Conditioning::Budget { ctg: 5.0 }]).unwrap();
+    let step = StepInput {
+        obs: &[0.5, 0.5],
+        arrived_obs: &[0.0, 0.0],
+        prev_action: &[0.0; 5],
+        reward: &[0.0],
+        cost: &[0.0],
+        episode_start: &[true],
+    };
+    assert!(matches!(
+        agent.act(&step, true).unwrap(),
+        Actions::Discrete(_)
+    ));
+    let three = StepInput {
+        obs: &[0.5; 5],
+        arrived_obs: &[0.0; 5],
+        ..step
+    };
+    let err = agent.act(&three, true).unwrap_err().to_string();
+    assert!(err.contains("obs has 5 entries, expected 2"), "{err}");
     std::fs::remove_dir_all(&out).unwrap();
 }
