@@ -50,6 +50,51 @@ pub struct RoundStats {
     /// and the fraction with |a| > 0.99; NaN for discrete actions.
     pub action_abs: f64,
     pub action_saturated: f64,
+    /// With goal slots (`goal_in_observation`), the round's two kinds of
+    /// trajectory apart; NaN without slots, or where a kind is absent.
+    pub goal_slots: GoalSlotStats,
+}
+
+/// The round's trajectories that hid their goal against those that showed it.
+#[derive(Clone, Copy, Debug)]
+pub struct GoalSlotStats {
+    /// The share of trajectories whose goal was hidden.
+    pub hidden_share: f64,
+    /// Mean episode return, and the revisit rate, of the hidden ones: what
+    /// evaluation will measure.
+    pub hidden_return: f64,
+    pub hidden_revisit_rate: f64,
+    /// Mean episode return of the shown ones: the control learned.
+    pub shown_return: f64,
+}
+
+impl Default for GoalSlotStats {
+    fn default() -> Self {
+        GoalSlotStats {
+            hidden_share: f64::NAN,
+            hidden_return: f64::NAN,
+            hidden_revisit_rate: f64::NAN,
+            shown_return: f64::NAN,
+        }
+    }
+}
+
+impl GoalSlotStats {
+    fn of(trajs: &[Trajectory], hidden: &[bool]) -> Self {
+        let kind = |h: bool| trajs.iter().zip(hidden).filter(move |(_, x)| **x == h);
+        let returns = |h: bool| {
+            mean(kind(h).flat_map(|(t, _)| t.episode_returns.iter().map(|&x| f64::from(x))))
+        };
+        GoalSlotStats {
+            hidden_share: mean(hidden.iter().map(|&h| if h { 1.0 } else { 0.0 })),
+            hidden_return: returns(true),
+            hidden_revisit_rate: search_rates(
+                kind(true).map(|(t, _)| t.episode_success.as_slice()),
+            )
+            .1,
+            shown_return: returns(false),
+        }
+    }
 }
 
 /// (discovery rate, revisit rate, fraction found at least once) over
@@ -204,6 +249,7 @@ fn round_stats(
                 .map(|t| f64::from(*t.episode_costs.last().unwrap_or(&0.0))),
         ),
         last_over_budget: last_over_budget(trajs),
+        goal_slots: GoalSlotStats::default(),
     }
 }
 
@@ -410,7 +456,10 @@ impl Collector<'_> {
         }
         *self.env_steps += steps;
         let radii = (self.cfg.novelty_cell, crate::eval::repeat_radius(self.env));
-        let stats = round_stats(&trajs, steps, self.spec, radii);
+        let mut stats = round_stats(&trajs, steps, self.spec, radii);
+        if self.cfg.goal_in_observation {
+            stats.goal_slots = GoalSlotStats::of(&trajs, &hidden);
+        }
         Ok((trajs, stats))
     }
 

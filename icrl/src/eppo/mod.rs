@@ -118,6 +118,9 @@
 //! drives the same route), `repeat_cost` (cost per episode paid again, near
 //! where the trajectory paid one in an earlier episode), `last_over_budget`
 //! (the share of trajectories whose last episode ended over its budget),
+//! with goal slots `goal_hidden_share`, `hidden_goal_return`,
+//! `hidden_goal_revisit_rate` and `shown_goal_return` (the two kinds of
+//! trajectory apart),
 //! `lambda`, `constrained`
 //! (whether the constraint acted in the round), `over_budget_price` (the
 //! excess price charged, 0 when none is), `entropy_coef`,
@@ -807,6 +810,10 @@ fn round_record(
         "search_new_cells": round.search_new_cells,
         "repeat_cost": round.repeat_cost,
         "last_over_budget": round.last_over_budget,
+        "goal_hidden_share": round.goal_slots.hidden_share,
+        "hidden_goal_return": round.goal_slots.hidden_return,
+        "hidden_goal_revisit_rate": round.goal_slots.hidden_revisit_rate,
+        "shown_goal_return": round.goal_slots.shown_return,
         "lambda": learner.multiplier.lambda,
         "constrained": learner.constrained(),
         "over_budget_price": learner.over_budget_price(),

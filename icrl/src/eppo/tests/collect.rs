@@ -878,7 +878,14 @@ fn hidden_goals_are_blank_throughout_and_such_a_policy_is_evaluated() {
     let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
     let mut venv = training_venv(EnvName::DarkRoom, &cfg);
     for _ in 0..2 {
-        learner.collect(&mut venv).unwrap();
+        let stats = learner.collect(&mut venv).unwrap();
+        let round = learner.replay.trajectories.iter().rev().take(8);
+        let blank = round.filter(|t| !GoalShown::shows(&t.obs[..5]));
+        let share = blank.count() as f64 / 8.0;
+        assert_eq!(
+            stats.goal_slots.hidden_share, share,
+            "the metric counts them"
+        );
     }
     let (mut shown, mut hidden) = (Vec::new(), Vec::new());
     for t in &learner.replay.trajectories {
