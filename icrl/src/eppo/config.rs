@@ -363,6 +363,13 @@ pub struct EppoConfig {
     /// worth.
     #[serde(default)]
     pub termination_reward: f64,
+    /// `penalty = "terminate"` with `novelty_critic`: the novelty critics'
+    /// value goes on past the step where the budget ends the task critics'.
+    /// Ending both made the agent search less (found by episode 10 0.61 ->
+    /// 0.41-0.44, results/eppo_point_ladder, pt1 and pt4): a search that
+    /// overspent lost what its later search was worth, not only its goal.
+    #[serde(default)]
+    pub termination_spares_search: bool,
     /// Later prices: each `{ after = N, price = P }` charges P per unit of
     /// excess cost from N updates past the constraint's start on (N rising).
     /// A price high enough to make the budget bind at the start stops search
@@ -846,6 +853,16 @@ impl EppoConfig {
                  cost), got {}",
                 self.repeat_cost_radius
             ));
+        }
+        if self.termination_spares_search
+            && !(self.penalty == PenaltyForm::Terminate && self.novelty_critic)
+        {
+            return bad(
+                "termination_spares_search keeps the novelty critics' value past the step where \
+                 penalty = \"terminate\" ends the task critics': set penalty = \"terminate\" and \
+                 novelty_critic = true, or termination_spares_search = false"
+                    .to_string(),
+            );
         }
         if self.goal_hidden_share > 0.0 && !self.goal_in_observation {
             return bad(

@@ -384,6 +384,10 @@ pub(super) struct Batch {
     /// `rewards` would otherwise carry, the novelty critics' reward (less
     /// the over-budget price with `novelty_pays_price`).
     pub(super) novelty_rewards: Option<Tensor>,
+    /// (B, L) 1 where the novelty critics' target bootstraps: `bootstrap`,
+    /// but past where the budget ends the value under
+    /// `termination_spares_search`.
+    pub(super) novelty_bootstrap: Tensor,
 }
 
 /// The critics' pretraining-only dense reward for step `step` of `t`:
@@ -588,6 +592,7 @@ pub(super) fn make_batch(
     let mut valid = vec![0f32; b * l];
     let mut td_valid = vec![0f32; b * l];
     let mut boot = vec![0f32; b * l];
+    let mut novelty_boot = vec![0f32; b * l];
     let mut cost_boot = vec![0f32; b * l];
     let mut goal_known = vec![0f32; b * l];
     let zeros_a = vec![0f32; a];
@@ -722,14 +727,17 @@ pub(super) fn make_batch(
             goal_known[k] = if found { 1.0 } else { 0.0 };
             found |= t.terminated[step];
             let (has_target, mut bootstraps, cost_bootstraps) = td_masks(cfg, t, step, i + 1 < len);
+            let mut novelty_bootstraps = bootstraps;
             if let Some((end_reward, ends)) = &value_ends
                 && ends[step]
             {
                 rew[k] += end_reward * scale;
                 bootstraps = false;
+                novelty_bootstraps = cfg.termination_spares_search;
             }
             td_valid[k] = if has_target { 1.0 } else { 0.0 };
             boot[k] = if bootstraps { 1.0 } else { 0.0 };
+            novelty_boot[k] = if novelty_bootstraps { 1.0 } else { 0.0 };
             cost_boot[k] = if cost_bootstraps { 1.0 } else { 0.0 };
         }
     }
@@ -759,6 +767,7 @@ pub(super) fn make_batch(
             .to_device(device),
         goal_known: f(&goal_known),
         novelty_rewards: cfg.novelty_critic.then(|| f(&novelty_rew)),
+        novelty_bootstrap: f(&novelty_boot),
     }
 }
 

@@ -291,6 +291,32 @@ fn termination_ends_the_critics_value_at_the_step_that_overspends() {
         assert_eq!(after[step], expected, "step {step}");
     }
     assert_eq!(before[2], 1.0, "the walk bootstraps there unconstrained");
+    // The novelty critics' value ends there too, unless the termination
+    // spares search: then only the task critics' does.
+    assert_eq!(to_vec(&ended.novelty_bootstrap), after);
+    let spares = EppoConfig {
+        novelty_critic: true,
+        novelty_bonus: 0.1,
+        termination_spares_search: true,
+        ..cfg.clone()
+    };
+    spares.validate().unwrap();
+    let spared = {
+        let mut rng = ChaCha8Rng::seed_from_u64(0);
+        make_batch(&[&t], &spares, &spec, shaping, &mut rng, Device::Cpu)
+    };
+    assert_eq!(to_vec(&spared.novelty_bootstrap), before);
+    assert_eq!(to_vec(&spared.bootstrap), after);
+    assert_eq!(to_vec(&spared.rewards), to_vec(&ended.rewards));
+    let err = EppoConfig {
+        penalty: PenaltyForm::Hindsight,
+        termination_reward: 0.0,
+        ..spares
+    }
+    .validate()
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("termination_spares_search"), "{err}");
     assert_eq!(to_vec(&ended.costs), t.costs, "costs as paid");
     assert_eq!(to_vec(&ended.cost_bootstrap), to_vec(&plain.cost_bootstrap));
     assert_no_actor_penalty(PenaltyForm::Terminate);
