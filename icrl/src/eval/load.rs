@@ -209,15 +209,14 @@ pub fn load_checkpoint(path: &Path, env: EnvName) -> Result<LoadedAgent, EvalCmd
             }
             let m = &manifest.model;
             let get = |k: &str| m.get(k).and_then(|v| v.as_u64()).map(|v| v as usize);
-            let (Some(obs_dim), Some(act_dim)) = (get("obs_dim"), get("act_dim")) else {
+            let (Some(_), Some(act_dim)) = (get("obs_dim"), get("act_dim")) else {
                 return Err(bad(&ckpt, format!("{MANIFEST} records no obs_dim/act_dim")));
             };
             let agent = EppoAgent::load(&ckpt, tch::Device::cuda_if_available())
                 .map_err(|e| bad(&ckpt, e.to_string()))?;
             let cfg = agent.config().clone();
             // Goal slots (`goal_in_observation`) are the agent's, not the task's.
-            let slots = obs_dim - agent.env_obs_dim().min(obs_dim);
-            check_shape(&ckpt, env, obs_dim - slots, get("n_actions"), act_dim)?;
+            check_shape(&ckpt, env, agent.env_obs_dim(), get("n_actions"), act_dim)?;
             let pretrain_tasks = crate::eppo::recorded_pretrain_tasks(&ckpt)
                 .map_err(|e| bad(&ckpt, e.to_string()))?;
             let context = ContextLimit {
