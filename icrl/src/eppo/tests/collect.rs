@@ -812,15 +812,7 @@ fn the_goal_conditioned_rung_sees_the_goal_and_is_never_evaluated() {
             );
         }
     }
-    let out = std::env::temp_dir().join(format!("icrl-eppo-goal-{}", std::process::id()));
-    let report = train(&PretrainOptions {
-        env: EnvName::DarkRoom,
-        cfg,
-        out: out.clone(),
-        resume: None,
-        progress: false,
-    })
-    .unwrap();
+    let (out, report) = train_darkroom(cfg, "goal");
     let err = EppoAgent::load(&report.last_checkpoint, Device::Cpu)
         .err()
         .unwrap()
@@ -941,15 +933,7 @@ fn hidden_goals_are_blank_throughout_and_such_a_policy_is_evaluated() {
         }
     }
 
-    let out = std::env::temp_dir().join(format!("icrl-eppo-hidden-{}", std::process::id()));
-    let report = train(&PretrainOptions {
-        env: EnvName::DarkRoom,
-        cfg,
-        out: out.clone(),
-        resume: None,
-        progress: false,
-    })
-    .unwrap();
+    let (out, report) = train_darkroom(cfg, "hidden");
     let mut agent = EppoAgent::load(&report.last_checkpoint, Device::Cpu).unwrap();
     assert_eq!(agent.env_obs_dim(), 2, "the grid's own position");
     agent.reset(&[Conditioning::Budget { ctg: 5.0 }]).unwrap();

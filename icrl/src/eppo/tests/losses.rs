@@ -198,18 +198,10 @@ fn the_entropy_weight_tracks_its_target() {
     );
     assert_eq!(after_updates(None), start, "no target: fixed");
 
-    let out = std::env::temp_dir().join(format!("icrl-eppo-alpha-{}", std::process::id()));
     let mut cfg = tiny();
     cfg.target_entropy = Some(5.0);
     cfg.entropy_coef_lr = 0.1;
-    let report = train(&PretrainOptions {
-        env: EnvName::DarkRoom,
-        cfg: cfg.clone(),
-        out: out.clone(),
-        resume: None,
-        progress: false,
-    })
-    .unwrap();
+    let (out, report) = train_darkroom(cfg.clone(), "alpha");
     let lines = std::fs::read_to_string(report.run_dir.join("metrics.jsonl")).unwrap();
     let last: serde_json::Value = serde_json::from_str(lines.lines().last().unwrap()).unwrap();
     let logged = last["entropy_coef"].as_f64().unwrap();

@@ -207,6 +207,21 @@ fn replay_batch(learner: &Learner) -> Batch {
     unshaped_batch(&trajs, &learner.cfg, &learner.spec, &mut rng)
 }
 
+/// Trains `cfg` on SafeDarkRoom to its end in a fresh temporary folder named
+/// after `name`; returns the folder (for the caller to remove) and the report.
+pub(crate) fn train_darkroom(cfg: EppoConfig, name: &str) -> (PathBuf, PretrainReport) {
+    let out = std::env::temp_dir().join(format!("icrl-eppo-{name}-{}", std::process::id()));
+    let report = train(&PretrainOptions {
+        env: EnvName::DarkRoom,
+        cfg,
+        out: out.clone(),
+        resume: None,
+        progress: false,
+    })
+    .unwrap();
+    (out, report)
+}
+
 /// Trains `cfg` into `out` with a stop requested from the start: the run must
 /// stop after update 1 with checkpoint `step_1`. Then resumes that run to its
 /// end; returns the updates done and the `updates` of every metrics record.
