@@ -368,6 +368,7 @@ pub struct EppoConfig {
     /// Ending both made the agent search less (found by episode 10 0.61 ->
     /// 0.41-0.44, results/eppo_point_ladder, pt1 and pt4): a search that
     /// overspent lost what its later search was worth, not only its goal.
+    /// Measured on Point, no difference (pt5: the same decline as pt1).
     #[serde(default)]
     pub termination_spares_search: bool,
     /// Later prices: each `{ after = N, price = P }` charges P per unit of
