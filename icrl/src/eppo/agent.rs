@@ -1,6 +1,7 @@
 //! The frozen [`EppoAgent`] that evaluation drives: a checkpoint loaded and
 //! checked, acting through the KV cache.
 
+use std::borrow::Cow;
 use std::path::Path;
 
 use rand::SeedableRng;
@@ -201,12 +202,10 @@ impl InContextAgent for EppoAgent {
                 })
                 .collect(),
         };
-        let blank_slots = |rows: &[f32]| -> Vec<f32> {
-            rows.chunks(env_od)
-                .flat_map(|row| row.iter().copied().chain(std::iter::repeat_n(0.0, slots)))
-                .collect()
-        };
-        let (obs, arrived_obs) = (blank_slots(input.obs), blank_slots(input.arrived_obs));
+        let (obs, arrived_obs) = (
+            with_blank_slots(input.obs, env_od, slots),
+            with_blank_slots(input.arrived_obs, env_od, slots),
+        );
         let input = StepInput {
             obs: &obs,
             arrived_obs: &arrived_obs,
@@ -224,4 +223,15 @@ impl InContextAgent for EppoAgent {
             EnvActions::Continuous(v) => Actions::Continuous(v),
         })
     }
+}
+
+/// `rows`, each `env_od` wide, with `slots` zeros appended to each; copied
+/// only where there are slots to append.
+fn with_blank_slots(rows: &[f32], env_od: usize, slots: usize) -> Cow<'_, [f32]> {
+    if slots == 0 {
+        return Cow::Borrowed(rows);
+    }
+    rows.chunks(env_od)
+        .flat_map(|row| row.iter().copied().chain(std::iter::repeat_n(0.0, slots)))
+        .collect()
 }

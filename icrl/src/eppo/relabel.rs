@@ -37,10 +37,8 @@ pub(super) fn relabel_some(
             let goal = pick_goal(t, spec.obs_dim, rule, rng)?;
             let mut out = relabel(t, spec.obs_dim, spec.act_flat(), rule, goal);
             if goal_slots && GoalShown::shows(&t.obs[..spec.obs_dim]) {
-                for row in out.obs.chunks_mut(spec.obs_dim) {
-                    GoalShown::show(row, goal);
-                }
-                for row in out.next_obs.chunks_mut(spec.obs_dim) {
+                let od = spec.obs_dim;
+                for row in out.obs.chunks_mut(od).chain(out.next_obs.chunks_mut(od)) {
                     GoalShown::show(row, goal);
                 }
             }
