@@ -80,7 +80,8 @@
 //! (`eps_after_success`), a critic-only bonus for cells new to the trajectory
 //! until its first success (`novelty_bonus`, annealed over
 //! `novelty_anneal_updates`, rising with the episode index by
-//! `novelty_rise`; gated by the budget with `novelty_budget`:
+//! `novelty_rise`, scaled by the distance from the episode's start with
+//! `novelty_distance_scale`; gated by the budget with `novelty_budget`:
 //! withheld past it, or scaled by the share of it left; learned by critics
 //! of its own that the actor weighs only until its context holds a success,
 //! with `novelty_critic`, which pay the over-budget price as well with

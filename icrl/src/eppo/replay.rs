@@ -511,6 +511,22 @@ pub(super) fn novel_arrivals(
     novel
 }
 
+/// Each step's arrival: its distance from its episode's start position,
+/// over `scale`.
+fn distances_from_episode_start(t: &Trajectory, obs_dim: usize, scale: f64) -> Vec<f32> {
+    let position = |o: &[f32]| [o[0], o[1]];
+    let mut start = [0f32; 2];
+    (0..t.len())
+        .map(|step| {
+            if t.start[step] {
+                start = position(&t.obs[step * obs_dim..]);
+            }
+            let [x, y] = position(&t.next_obs[step * obs_dim..]);
+            ((x - start[0]).hypot(y - start[1]) as f64 / scale) as f32
+        })
+        .collect()
+}
+
 /// What the critics' rewards carry beyond the collected reward at one update
 /// ([`EppoConfig::shaping`]); the tokens never do.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -610,6 +626,8 @@ pub(super) fn make_batch(
         } else {
             vec![0.0; t.len()]
         };
+        let outward = (shaping.novelty > 0.0 && cfg.novelty_distance_scale > 0.0)
+            .then(|| distances_from_episode_start(t, spec.obs_dim, cfg.novelty_distance_scale));
         // Under a repeat radius, the steps whose cost the price or the
         // termination may act on.
         let repeated = (cfg.repeat_cost_radius > 0.0)
@@ -682,7 +700,8 @@ pub(super) fn make_batch(
                 NoveltyBudget::Always | NoveltyBudget::WithinBudget => 1.0,
             };
             let rise = 1.0 + cfg.novelty_rise as f32 * t.episode[step] as f32;
-            let novelty = shaping.novelty * novel[step] * share * rise;
+            let far = outward.as_ref().map_or(1.0, |d| d[step]);
+            let novelty = shaping.novelty * novel[step] * share * rise * far;
             // The step's reward with `bonus` for novelty (nothing of it once
             // the episode's budget is spent, unless the price leaves it).
             let priced = |bonus: f32| {
