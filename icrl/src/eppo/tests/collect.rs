@@ -385,13 +385,7 @@ fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
         vec![0.1, 0.0, 0.1, 0.0, 0.15, 0.0, 0.0, 0.0]
     );
     rising.novelty_rise = -0.1;
-    assert!(
-        rising
-            .validate()
-            .unwrap_err()
-            .to_string()
-            .contains("novelty_rise")
-    );
+    assert!(refused(&rising, "novelty_rise"));
     // Scaled by the arrival's distance from its episode's start, (4, 4):
     // 1 cell for the first two new cells, sqrt(2) for (3, 5); over 2 cells,
     // half that.
@@ -407,13 +401,7 @@ fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
         vec![0.05, 0.0, 0.05, 0.0, 0.071, 0.0, 0.0, 0.0]
     );
     outward.novelty_distance_scale = -1.0;
-    assert!(
-        outward
-            .validate()
-            .unwrap_err()
-            .to_string()
-            .contains("novelty_distance_scale")
-    );
+    assert!(refused(&outward, "novelty_distance_scale"));
     // Annealed linearly to zero, then held there.
     let mut cfg = tiny();
     cfg.novelty_bonus = 0.2;

@@ -90,6 +90,12 @@ fn training_venv(env: EnvName, cfg: &EppoConfig) -> VecEnv {
     VecEnv::new(envs, 1, true).unwrap()
 }
 
+/// `cfg` fails validation with a message that names `field`.
+fn refused(cfg: &EppoConfig, field: &str) -> bool {
+    cfg.validate()
+        .is_err_and(|err| err.to_string().contains(field))
+}
+
 fn to_vec(t: &Tensor) -> Vec<f32> {
     Vec::<f32>::try_from(&t.to_kind(Kind::Float).view([-1])).unwrap()
 }
