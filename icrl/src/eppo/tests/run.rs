@@ -365,20 +365,10 @@ fn the_replay_ratio_sets_updates_per_environment_step() {
     assert_eq!(learner.updates_owed(), 1);
     let mut bad = tiny();
     bad.replay_ratio = Some(0.0);
-    assert!(
-        bad.validate()
-            .unwrap_err()
-            .to_string()
-            .contains("replay_ratio = 0")
-    );
+    assert!(refused(&bad, "replay_ratio = 0"));
     let mut bad = tiny();
     bad.learner_threads = -1;
-    assert!(
-        bad.validate()
-            .unwrap_err()
-            .to_string()
-            .contains("learner_threads = -1")
-    );
+    assert!(refused(&bad, "learner_threads = -1"));
 }
 
 /// A stop while both sides run: the learner stops after its current update,
