@@ -521,8 +521,8 @@ fn distances_from_episode_start(t: &Trajectory, obs_dim: usize, scale: f64) -> V
             if t.start[step] {
                 start = position(&t.obs[step * obs_dim..]);
             }
-            let [x, y] = position(&t.next_obs[step * obs_dim..]);
-            ((x - start[0]).hypot(y - start[1]) as f64 / scale) as f32
+            let arrived = position(&t.next_obs[step * obs_dim..]);
+            (f64::from(GoalRule::distance(arrived, start)) / scale) as f32
         })
         .collect()
 }
