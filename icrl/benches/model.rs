@@ -4,7 +4,9 @@
 //!    at length 1500 (Table 1 transformer, 12 trajectories): goal >= 20x.
 //! 2. Trajectories collected per second (SafeDarkRoom, quick and Table 1 presets).
 //! 3. One EPPO update at the quick SafeDarkRoom preset's size (batch 8 x 480
-//!    steps, K = 16; `ICRL_BENCH_UPDATE=table1`: batch 32 x 1500) against
+//!    steps, K = 16; `ICRL_BENCH_UPDATE=table1`: batch 32 x 1500;
+//!    `ICRL_BENCH_UPDATE_SET="k_min=25,k_max=25,model.max_len=750"`: the
+//!    robot presets' transformer over a context of 750 steps) against
 //!    the same model and update in PyTorch eager
 //!    (`icrl/benches/eppo_update_torch.py`, run with `$ICRL_TORCH_PYTHON`,
 //!    default `python3`), on process CPU time: goal <= 0.8x. Also where the
@@ -192,7 +194,9 @@ fn main() {
     }
     if run("update") {
         let preset = std::env::var("ICRL_BENCH_UPDATE").unwrap_or_else(|_| "quick".into());
-        update_part(&config(&preset, &[]), threads);
+        let sets = std::env::var("ICRL_BENCH_UPDATE_SET").unwrap_or_default();
+        let sets: Vec<&str> = sets.split(',').filter(|s| !s.is_empty()).collect();
+        update_part(&config(&preset, &sets), threads);
     }
     if run("overlap") {
         overlap_part();

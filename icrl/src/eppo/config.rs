@@ -226,6 +226,16 @@ pub struct EppoConfig {
     /// policy never reads it. 0: off (the paper).
     #[serde(default)]
     pub goal_recall_coef: f64,
+    /// An auxiliary loss for pretraining only, the goal recall's twin for
+    /// costs: a head reads off h_t where the nearest cost paid earlier in
+    /// the window was (its position less the agent's, from the observation
+    /// the cost arrived with), at every step after the window's first cost,
+    /// weighted by this. With lidar off a hazard is met only by paying for
+    /// it, and avoiding it later needs its place held in the context, which
+    /// nothing else in training asks for (results/eppo_point_ladder). The
+    /// head adds to the checkpoint; the policy never reads it. 0: off.
+    #[serde(default)]
+    pub hazard_recall_coef: f64,
     /// Standardise the observation entries without finite bounds (Point and
     /// Car: position, sensors) by the mean and standard deviation of a
     /// random policy's observations on 20 pretraining tasks, frozen in the
@@ -436,11 +446,13 @@ pub struct EppoConfig {
     /// updates_per_round / n_envs), as in the paper's loop.
     #[serde(default)]
     pub replay_ratio: Option<f64>,
-    /// Overlapped loop: libtorch intra-op threads of the learner's thread (0:
-    /// `torch_threads`); the actor keeps `torch_threads`. Where acting is a
-    /// tenth of the work (SafeDarkRoom) the actor mostly waits, and 2 lends
-    /// its core to the update (not yet measured on a free machine:
-    /// BENCHMARKS.md).
+    /// Overlapped loop: libtorch threads of the learner's update (0:
+    /// `torch_threads`); the actor keeps `torch_threads`. From 2 on, the
+    /// target network's forward runs on a thread of its own beside the
+    /// online forward, then the backward on all of them. Where the actor
+    /// mostly waits (SafeDarkRoom; Car at 32 updates a round) 2 lends its
+    /// core to the update: 1.45x SafeDarkRoom's updates/s, 1.30x Car's
+    /// (BENCHMARKS.md).
     #[serde(default)]
     pub learner_threads: i32,
 }
@@ -687,6 +699,11 @@ impl EppoConfig {
             (
                 "goal_recall_coef",
                 self.goal_recall_coef,
+                Range::NON_NEGATIVE,
+            ),
+            (
+                "hazard_recall_coef",
+                self.hazard_recall_coef,
                 Range::NON_NEGATIVE,
             ),
             ("lambda_kp", self.lambda_kp, Range::NON_NEGATIVE),

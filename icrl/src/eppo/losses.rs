@@ -3,7 +3,7 @@
 //! Polyak update of the target networks.
 
 use serde::Serialize;
-use tch::{Kind, Tensor, nn};
+use tch::{Device, Kind, Tensor, nn};
 
 use super::config::{EppoConfig, EppoError, PenaltyForm};
 use super::net::{EppoNet, Head, tanh_gaussian_log_prob, tanh_gaussian_sample};
@@ -26,6 +26,8 @@ pub struct UpdateStats {
     pub log_std_mean: f64,
     /// The goal-recall loss (NaN without the head).
     pub goal_recall_loss: f64,
+    /// The hazard-recall loss (NaN without the head).
+    pub hazard_recall_loss: f64,
     /// Mean Q of the novelty critics on the replayed actions (NaN without).
     pub novelty_q_mean: f64,
 }
@@ -37,6 +39,8 @@ pub(super) struct LossDiagnostics {
     pub(super) log_std_mean: Option<Tensor>,
     /// The goal-recall loss (with gradient), where the net has the head.
     pub(super) goal_recall: Option<Tensor>,
+    /// The hazard-recall loss (with gradient), where the net has the head.
+    pub(super) hazard_recall: Option<Tensor>,
     /// Mean Q of the novelty critics on the replayed actions, where the net
     /// has them.
     pub(super) novelty_q_mean: Option<Tensor>,
@@ -90,9 +94,9 @@ pub(super) fn losses(
 ) -> Result<(Tensor, Tensor, Tensor, Tensor, LossDiagnostics), EppoError> {
     // Dropout and the reparameterisation noise draw from libtorch's generator.
     crate::torch_rng::drawing(|| {
-        let h = net.encode(&batch.tokens, true)?; // (B, L, D)
+        let (h, ht) = encodings(net, target, &batch.tokens)?; // (B, L, D) each
         let c = cfg.n_critics;
-        let (y, yc, yn) = td_targets(net, target, batch, cfg)?; // (B, L) each
+        let (y, yc, yn) = td_targets(net, target, &ht, batch, cfg)?; // (B, L) each
         let td_mask = batch.td_valid.unsqueeze(-1); // (B, L, 1)
         let actor = match net.spec.n_actions {
             Some(_) => discrete_actor(net, &h, batch, lambda, entropy_coef, cfg),
@@ -109,6 +113,10 @@ pub(super) fn losses(
                 .goal_recall
                 .as_ref()
                 .map(|head| goal_recall_loss(head, &h, batch)),
+            hazard_recall: net
+                .hazard_recall
+                .as_ref()
+                .map(|head| hazard_recall_loss(head, &h, batch)),
             novelty_q_mean: actor.qn_taken.as_ref().map(|qn| {
                 masked_mean(
                     &qn.detach().mean_dim(-1, false, Kind::Float),
@@ -147,18 +155,86 @@ pub(super) fn goal_recall_loss(head: &Head, h: &Tensor, batch: &Batch) -> Tensor
     masked_mean(&error, &batch.goal_known)
 }
 
+/// The online encoding h (with gradient, dropout on) and the target
+/// network's ht (no gradient), (B, L, D) each. Where the learner has more
+/// than one libtorch thread on the CPU, the target's forward runs on a thread of its
+/// own beside the online forward, one libtorch thread each, instead of both
+/// one after the other on all of them: a 2-layer transformer on 8-wide heads
+/// gains little from a second intra-op thread (BENCHMARKS.md). The target's
+/// forward draws nothing from libtorch's generator (no dropout), so which
+/// thread runs it changes no result, and the schedule is fixed, so a run
+/// stays deterministic under its seed.
+fn encodings(
+    net: &EppoNet,
+    target: &EppoNet,
+    tokens: &Tensor,
+) -> Result<(Tensor, Tensor), EppoError> {
+    let threads = tch::get_num_threads();
+    let target_encoding = |tokens: &Tensor| tch::no_grad(|| target.encode(tokens, false));
+    if threads < 2 || tokens.device() != Device::Cpu {
+        return Ok((net.encode(tokens, true)?, target_encoding(tokens)?));
+    }
+    let beside = TargetForward {
+        target,
+        tokens: tokens.shallow_clone(),
+    };
+    tch::set_num_threads(1);
+    let (h, ht) = std::thread::scope(|s| {
+        let ht = s.spawn(move || {
+            tch::set_num_threads(1);
+            beside.run()
+        });
+        let h = net.encode(tokens, true);
+        let ht = ht.join().unwrap_or_else(|_| {
+            Err(EppoError::Config(
+                "the target network's forward thread panicked".into(),
+            ))
+        });
+        (h, ht)
+    });
+    tch::set_num_threads(threads);
+    Ok((h?, ht?))
+}
+
+/// The target network's forward, handed to a thread of its own.
+struct TargetForward<'a> {
+    target: &'a EppoNet,
+    tokens: Tensor,
+}
+
+// SAFETY: the thread only reads the target network's weights, which nothing
+// writes until it is joined (the Polyak step comes after the losses), and
+// libtorch's CPU kernels may read one tensor from several threads at once.
+unsafe impl Send for TargetForward<'_> {}
+
+impl TargetForward<'_> {
+    fn run(self) -> Result<Tensor, EppoError> {
+        tch::no_grad(|| self.target.encode(&self.tokens, false))
+    }
+}
+
+/// Squared distance between the nearest earlier cost's offset read off h_t
+/// and the true one, averaged over the steps after the window's first cost.
+pub(super) fn hazard_recall_loss(head: &Head, h: &Tensor, batch: &Batch) -> Tensor {
+    let error = (head.forward(h) - &batch.hazard_offset)
+        .square()
+        .sum_dim_intlist(-1, false, Kind::Float); // (B, L)
+    masked_mean(&error, &batch.hazard_known)
+}
+
 /// The reward, cost and (with novelty critics) novelty TD targets y, yc
-/// and yn, (B, L) each, from the target networks at t + 1 (no gradient).
+/// and yn, (B, L) each, from the target networks at t + 1 (no gradient),
+/// given the target network's encoding `ht`.
 fn td_targets(
     net: &EppoNet,
     target: &EppoNet,
+    ht: &Tensor,
     batch: &Batch,
     cfg: &EppoConfig,
 ) -> Result<(Tensor, Tensor, Option<Tensor>), EppoError> {
     // Each step's values from the target networks under the target actor,
     // no gradient: (B, L, C) per head, then over the C critics.
     let (v, vc, vn) = tch::no_grad(|| -> Result<_, EppoError> {
-        let ht = target.encode(&batch.tokens, false)?; // (B, L, D)
         let values: Box<dyn Fn(&Head) -> Tensor + '_> = match net.spec.n_actions {
             Some(_) => {
                 // Expected value under the target actor: sum_a pi'(a) Q'(h, a).
