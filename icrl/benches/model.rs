@@ -226,6 +226,8 @@ fn collect_part() {
 
 fn update_part(cfg: &EppoConfig, threads: i32) {
     let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).expect("learner");
+    // The learner sets the preset's torch_threads: the bench's count rules.
+    tch::set_num_threads(threads);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
     for _ in 0..cfg.batch_size {
         learner.replay.push(synthetic(cfg.k_max, &mut rng));
