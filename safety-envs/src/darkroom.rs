@@ -12,11 +12,14 @@
 //! - Cost 1 for every step that *ends* on an obstacle cell.
 //! - Truncated at the time limit (default 30 steps) unless terminated first.
 //!
+//! [`draw_darkroom`] draws it from above (it has no MuJoCo model to render).
+//!
 //! `step` allocates nothing: the obstacles are kept as a flat `Vec<bool>`
 //! built once per [`CmdpEnv::set_task`].
 
 use crate::EnvError;
 use crate::env::{Action, CmdpEnv, GoalRule, Space, StepOutcome};
+use crate::mujoco::RgbImage;
 use crate::spawn::{Cell, Orientation, SpawnConfig, Task, sample_task};
 
 /// Number of discrete actions: stay, up, down, left, right.
@@ -234,6 +237,91 @@ impl CmdpEnv for SafeDarkRoom {
     }
 }
 
+/// Pictures of SafeDarkRoom are drawn by hand (it has no MuJoCo model for the
+/// off-screen renderer), by the `render` binary and the Python package alike.
+/// Colours shared by the MuJoCo arena (`assets/xml/arena.xml`) and the grid.
+pub const GOAL_RGB: [u8; 3] = [26, 204, 51];
+pub const HAZARD_RGB: [u8; 3] = [64, 89, 255];
+pub const ROBOT_RGB: [u8; 3] = [189, 11, 47];
+pub const FLOOR_RGB: [u8; 3] = [232, 232, 228];
+pub const LINE_RGB: [u8; 3] = [170, 170, 165];
+pub const TRAIL_RGB: [u8; 3] = [240, 160, 170];
+
+/// Draws SafeDarkRoom from above: floor cells, obstacles blue, goal green,
+/// the start cell outlined, the cells visited in `trail` pink, the agent a red
+/// disc. Row 0 is the top of the image, as in the observation.
+pub fn draw_darkroom(
+    env: &SafeDarkRoom,
+    trail: &[Cell],
+    (width, height): (usize, usize),
+) -> RgbImage {
+    let task = env.task();
+    let g = task.grid_size;
+    let cell = (width.min(height) / g).max(3);
+    // A picture smaller than the grid at 3 pixels a cell shows its top-left part.
+    let (x0, y0) = (
+        width.saturating_sub(cell * g) / 2,
+        height.saturating_sub(cell * g) / 2,
+    );
+    let mut pixels = vec![255u8; width * height * 3];
+    let mut put = |x: usize, y: usize, rgb: [u8; 3]| {
+        if x < width && y < height {
+            let i = 3 * (y * width + x);
+            pixels[i..i + 3].copy_from_slice(&rgb);
+        }
+    };
+    let centre = Cell::centre(g);
+    for row in 0..g {
+        for col in 0..g {
+            let c = Cell { row, col };
+            let fill = if c == task.goal {
+                GOAL_RGB
+            } else if task.obstacles.contains(&c) {
+                HAZARD_RGB
+            } else if trail.contains(&c) {
+                TRAIL_RGB
+            } else {
+                FLOOR_RGB
+            };
+            for dy in 0..cell {
+                for dx in 0..cell {
+                    let border = dx == 0 || dy == 0 || dx == cell - 1 || dy == cell - 1;
+                    let start_ring =
+                        c == centre && (dx < 3 || dy < 3 || dx >= cell - 3 || dy >= cell - 3);
+                    let rgb = if start_ring {
+                        ROBOT_RGB
+                    } else if border {
+                        LINE_RGB
+                    } else {
+                        fill
+                    };
+                    put(x0 + col * cell + dx, y0 + row * cell + dy, rgb);
+                }
+            }
+        }
+    }
+    // The agent: a disc in its cell.
+    let p = env.position();
+    let (cx, cy) = (x0 + p.col * cell + cell / 2, y0 + p.row * cell + cell / 2);
+    let r = (cell as f64 * 0.32) as i64;
+    for dy in -r..=r {
+        for dx in -r..=r {
+            if dx * dx + dy * dy <= r * r {
+                put(
+                    (cx as i64 + dx) as usize,
+                    (cy as i64 + dy) as usize,
+                    ROBOT_RGB,
+                );
+            }
+        }
+    }
+    RgbImage {
+        width,
+        height,
+        pixels,
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -272,5 +360,18 @@ mod tests {
             env.step(Action::Discrete(0), &mut obs),
             Err(EnvError::State(_))
         ));
+    }
+
+    #[test]
+    fn draws_goal_hazards_and_agent_at_any_size() {
+        let mut env = SafeDarkRoom::new(DarkRoomConfig::default()).unwrap();
+        env.reset(0, &mut [0.0; 2]).unwrap();
+        let img = draw_darkroom(&env, &[], (90, 90));
+        assert_eq!(img.pixels.len(), 90 * 90 * 3);
+        let has = |rgb: [u8; 3]| img.pixels.chunks(3).any(|p| p == rgb);
+        assert!(has(GOAL_RGB) && has(HAZARD_RGB) && has(ROBOT_RGB));
+        // Smaller than 3 pixels a cell: cropped, not a panic.
+        let tiny = draw_darkroom(&env, &[], (5, 4));
+        assert_eq!(tiny.pixels.len(), 5 * 4 * 3);
     }
 }

@@ -22,6 +22,7 @@ use anyhow::{Context, Result, bail};
 use clap::Parser;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
+use safety_envs::darkroom::draw_darkroom;
 use safety_envs::mujoco::{Camera, Data, Model, Quality, Renderer, RgbImage};
 use safety_envs::output;
 use safety_envs::prelude::*;
@@ -200,14 +201,6 @@ struct EnvView {
     quality: Quality,
 }
 
-/// Colours shared by the MuJoCo arena (`assets/xml/arena.xml`) and the grid.
-const GOAL_RGB: [u8; 3] = [26, 204, 51];
-const HAZARD_RGB: [u8; 3] = [64, 89, 255];
-const ROBOT_RGB: [u8; 3] = [189, 11, 47];
-const FLOOR_RGB: [u8; 3] = [232, 232, 228];
-const LINE_RGB: [u8; 3] = [170, 170, 165];
-const TRAIL_RGB: [u8; 3] = [240, 160, 170];
-
 impl EnvView {
     fn task(&self) -> Result<Task> {
         Ok(sample_task(
@@ -335,73 +328,6 @@ impl EnvView {
             started.elapsed().as_secs_f64()
         );
         Ok(())
-    }
-}
-
-/// Draws SafeDarkRoom from above: floor cells, obstacles blue, goal green,
-/// the start cell outlined, the cells visited in `trail` pink, the agent a red
-/// disc. Row 0 is the top of the image, as in the observation.
-fn draw_darkroom(env: &SafeDarkRoom, trail: &[Cell], (width, height): (usize, usize)) -> RgbImage {
-    let task = env.task();
-    let g = task.grid_size;
-    let cell = (width.min(height) / g).max(3);
-    let (x0, y0) = ((width - cell * g) / 2, (height - cell * g) / 2);
-    let mut pixels = vec![255u8; width * height * 3];
-    let mut put = |x: usize, y: usize, rgb: [u8; 3]| {
-        if x < width && y < height {
-            let i = 3 * (y * width + x);
-            pixels[i..i + 3].copy_from_slice(&rgb);
-        }
-    };
-    let centre = Cell::centre(g);
-    for row in 0..g {
-        for col in 0..g {
-            let c = Cell { row, col };
-            let fill = if c == task.goal {
-                GOAL_RGB
-            } else if task.obstacles.contains(&c) {
-                HAZARD_RGB
-            } else if trail.contains(&c) {
-                TRAIL_RGB
-            } else {
-                FLOOR_RGB
-            };
-            for dy in 0..cell {
-                for dx in 0..cell {
-                    let border = dx == 0 || dy == 0 || dx == cell - 1 || dy == cell - 1;
-                    let start_ring =
-                        c == centre && (dx < 3 || dy < 3 || dx >= cell - 3 || dy >= cell - 3);
-                    let rgb = if start_ring {
-                        ROBOT_RGB
-                    } else if border {
-                        LINE_RGB
-                    } else {
-                        fill
-                    };
-                    put(x0 + col * cell + dx, y0 + row * cell + dy, rgb);
-                }
-            }
-        }
-    }
-    // The agent: a disc in its cell.
-    let p = env.position();
-    let (cx, cy) = (x0 + p.col * cell + cell / 2, y0 + p.row * cell + cell / 2);
-    let r = (cell as f64 * 0.32) as i64;
-    for dy in -r..=r {
-        for dx in -r..=r {
-            if dx * dx + dy * dy <= r * r {
-                put(
-                    (cx as i64 + dx) as usize,
-                    (cy as i64 + dy) as usize,
-                    ROBOT_RGB,
-                );
-            }
-        }
-    }
-    RgbImage {
-        width,
-        height,
-        pixels,
     }
 }
 
