@@ -14,7 +14,7 @@ use super::config::{EppoConfig, EppoError, memory_estimate};
 use super::net::{EppoNet, NetSpec};
 use crate::agent::{Actions, AgentError, Conditioning, InContextAgent, StepInput};
 use crate::checkpoint::{CheckpointError, RunDir, read_manifest};
-use safety_envs::GoalShown;
+use safety_envs::EnvName;
 
 /// A pretrained EPPO policy, frozen, acting through the KV cache.
 pub struct EppoAgent {
@@ -22,6 +22,9 @@ pub struct EppoAgent {
     net: EppoNet,
     spec: NetSpec,
     cfg: EppoConfig,
+    /// The entries at the end of its observation that it fills blank itself
+    /// (the goal slots or the hazard map it was trained with).
+    shown_slots: usize,
     acting: Option<Acting>,
     rng: ChaCha8Rng,
 }
@@ -61,18 +64,25 @@ impl EppoAgent {
             .map_err(|e| bad("state.json", e.to_string()))?;
         let state: TrainState =
             serde_json::from_str(&text).map_err(|e| bad("state.json", e.to_string()))?;
-        if cfg.goal_in_observation && cfg.goal_hidden_share == 0.0 {
+        if !cfg.slots_ever_hidden() {
+            let (shown, share) = if cfg.goal_in_observation {
+                ("goal_in_observation", "goal_hidden_share")
+            } else {
+                ("hazards_in_observation", "hazard_hidden_share")
+            };
             return Err(EppoError::Checkpoint(CheckpointError::Invalid {
                 path: dir.join("config.toml"),
-                problem: "it was trained with goal_in_observation = true and goal_hidden_share \
-                          = 0, a debugging-ladder rung whose agent is always shown the goal; \
-                          the tasks it would be evaluated on hide it"
-                    .into(),
-                fix: "evaluate a checkpoint trained without goal_in_observation, or with \
-                      goal_hidden_share > 0"
-                    .into(),
+                problem: format!(
+                    "it was trained with {shown} = true and {share} = 0, a ladder rung whose \
+                     agent is always shown what the tasks it would be evaluated on hide"
+                ),
+                fix: format!("evaluate a checkpoint trained without {shown}, or with {share} > 0"),
             }));
         }
+        let env: EnvName = manifest
+            .env
+            .parse()
+            .map_err(|e| bad(crate::checkpoint::MANIFEST, format!("{e}")))?;
         // The files decide sizes: check them before building anything.
         cfg.validate()
             .map_err(|e| bad("config.toml", e.to_string()))?;
@@ -113,6 +123,7 @@ impl EppoAgent {
         Ok(EppoAgent {
             _vs: vs,
             net,
+            shown_slots: cfg.shown_slots(env),
             spec: state.spec,
             rng: ChaCha8Rng::seed_from_u64(cfg.seed),
             cfg,
@@ -126,17 +137,10 @@ impl EppoAgent {
     }
 
     /// The observation width it takes from the environment: its network's,
-    /// less the goal slots it fills blank itself (`goal_in_observation`).
+    /// less the slots it fills blank itself (`goal_in_observation`,
+    /// `hazards_in_observation`).
     pub fn env_obs_dim(&self) -> usize {
-        self.spec.obs_dim - self.goal_slots()
-    }
-
-    fn goal_slots(&self) -> usize {
-        if self.cfg.goal_in_observation {
-            GoalShown::SLOTS
-        } else {
-            0
-        }
+        self.spec.obs_dim - self.shown_slots
     }
 
     /// Reseeds action sampling.
@@ -161,8 +165,8 @@ impl InContextAgent for EppoAgent {
     }
 
     fn act(&mut self, input: &StepInput<'_>, greedy: bool) -> Result<Actions, AgentError> {
-        // Trained with goal slots, it sees them blank: the tasks hide the goal.
-        let (slots, env_od) = (self.goal_slots(), self.env_obs_dim());
+        // Trained with goal or hazard slots, it sees them blank: the tasks hide them.
+        let (slots, env_od) = (self.shown_slots, self.env_obs_dim());
         let acting = self
             .acting
             .as_mut()

@@ -9,7 +9,7 @@ use tch::{Device, Kind, Tensor};
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use safety_envs::{EnvName, GoalShown, Orientation, VecAction, VecEnv, sample_task, spawn_config};
+use safety_envs::{EnvName, Orientation, VecAction, VecEnv, sample_task, spawn_config};
 
 use super::Learner;
 use super::config::{EppoConfig, EppoError};
@@ -333,14 +333,15 @@ impl Collector<'_> {
             })
             .collect();
         // Drawn only while some goal is hidden, so other runs keep their stream.
-        let hide_share = self.cfg.goal_hidden_share_at(*self.env_steps);
+        let hide_share = self.cfg.hidden_share_at(*self.env_steps);
         let hidden: Vec<bool> = (0..n)
             .map(|_| hide_share > 0.0 && self.rng.r#gen::<f64>() < hide_share)
             .collect();
         let mut active = vec![true; n];
         let (od, a) = (self.spec.obs_dim, self.spec.act_flat());
+        let slots = self.cfg.shown_slots(self.env);
         let mut obs = venv.observations().to_vec();
-        hide_goals(&mut obs, od, &hidden);
+        hide_slots(&mut obs, od, slots, &hidden);
         let mut arrived = vec![0f32; n * od];
         let mut prev_action = vec![0f32; n * a];
         let (mut reward, mut cost, mut start) = (vec![0f32; n], vec![0f32; n], vec![true; n]);
@@ -410,7 +411,7 @@ impl Collector<'_> {
                 },
             )?;
             obs.copy_from_slice(venv.observations());
-            hide_goals(&mut obs, od, &hidden);
+            hide_slots(&mut obs, od, slots, &hidden);
             for i in 0..n {
                 let o = outcomes[i];
                 // Where the action led: the final observation when it ended
@@ -423,7 +424,7 @@ impl Collector<'_> {
                 let arrived_row = &mut arrived[i * od..(i + 1) * od];
                 arrived_row.copy_from_slice(&reached[i * od..(i + 1) * od]);
                 if hidden[i] {
-                    GoalShown::hide(arrived_row);
+                    arrived_row[od - slots..].fill(0.0);
                 }
                 reward[i] = o.reward;
                 cost[i] = o.cost;
@@ -677,11 +678,12 @@ pub(super) fn sample_actions(
     }
 }
 
-/// Blanks the goal slots (`goal_in_observation`) of the rows of `obs`, each
-/// `od` wide, whose trajectory hides its goal.
-fn hide_goals(obs: &mut [f32], od: usize, hidden: &[bool]) {
+/// Blanks the `slots` shown at the end of the rows of `obs`, each `od` wide
+/// (the goal of `goal_in_observation`, the hazard map of
+/// `hazards_in_observation`), whose trajectory hides them.
+fn hide_slots(obs: &mut [f32], od: usize, slots: usize, hidden: &[bool]) {
     for (row, _) in obs.chunks_mut(od).zip(hidden).filter(|(_, h)| **h) {
-        GoalShown::hide(row);
+        row[od - slots..].fill(0.0);
     }
 }
 

@@ -9,7 +9,7 @@ use serde::{Deserialize, Serialize};
 use tch::Device;
 use thiserror::Error;
 
-use safety_envs::EnvError;
+use safety_envs::{EnvError, EnvName, GoalShown, HazardsShown, spawn_config};
 
 use super::multiplier::Gains;
 use super::net::NetSpec;
@@ -266,6 +266,24 @@ pub struct EppoConfig {
     /// schedule, so that collection alone decides it).
     #[serde(default)]
     pub goal_hidden_ramp: [u64; 2],
+    /// The robots' ladder's hazard rung: the task's hazard cells appended to
+    /// every observation as a map (`safety_envs::HazardsShown`), so that the
+    /// policy can route around hazards it has not paid for. Not with
+    /// `goal_in_observation` (one kind of slots at a time). Alone, such a
+    /// checkpoint cannot be evaluated (the tasks hide the map).
+    #[serde(default)]
+    pub hazards_in_observation: bool,
+    /// With `hazards_in_observation`: the share of trajectories whose map is
+    /// blanked once `hazard_hidden_ramp` ends, rising linearly from 0 across
+    /// it, as `goal_hidden_share` does for the goal: routing around a shown
+    /// hazard is learned first, around one the context holds second. A
+    /// checkpoint trained with hidden maps is evaluated with the map blank.
+    #[serde(default)]
+    pub hazard_hidden_share: f64,
+    /// Environment steps `[from, until]` over which the hidden share rises
+    /// from 0 to `hazard_hidden_share`.
+    #[serde(default)]
+    pub hazard_hidden_ramp: [u64; 2],
     /// Add to each token's embedding a sinusoid of the step's index within
     /// its episode (0 at the episode's first step), beside the model's
     /// position in the whole trajectory. Every robot episode starts from the
@@ -563,6 +581,17 @@ pub enum ViolationSignal {
 }
 
 /// Absent from a config: lambda stops rising once 5% of later episodes are over budget.
+/// 0 before `[from, until]`, 1 after, linear across it.
+fn ramp_at([from, until]: [u64; 2], env_steps: u64) -> f64 {
+    if env_steps >= until {
+        1.0
+    } else if env_steps <= from {
+        0.0
+    } else {
+        (env_steps - from) as f64 / (until - from) as f64
+    }
+}
+
 fn default_lambda_target_rate() -> f64 {
     0.05
 }
@@ -729,6 +758,7 @@ impl EppoConfig {
             ),
             ("scripted_share", self.scripted_share, Range::UNIT),
             ("goal_hidden_share", self.goal_hidden_share, Range::UNIT),
+            ("hazard_hidden_share", self.hazard_hidden_share, Range::UNIT),
             (
                 "saute_unsafe_reward",
                 self.saute_unsafe_reward,
@@ -909,6 +939,24 @@ impl EppoConfig {
                 self.goal_hidden_ramp
             ));
         }
+        if self.hazards_in_observation && self.goal_in_observation {
+            return bad(
+                "hazards_in_observation and goal_in_observation both append slots to the                  observation: set one of them to false"
+                    .to_string(),
+            );
+        }
+        if self.hazard_hidden_share > 0.0 && !self.hazards_in_observation {
+            return bad(
+                "hazard_hidden_share > 0 hides the hazard map of hazards_in_observation in some                  trajectories: set hazards_in_observation = true, or hazard_hidden_share = 0"
+                    .to_string(),
+            );
+        }
+        if self.hazard_hidden_ramp[0] > self.hazard_hidden_ramp[1] {
+            return bad(format!(
+                "hazard_hidden_ramp = {:?} must rise ([from, until] environment steps, from <= until)",
+                self.hazard_hidden_ramp
+            ));
+        }
         if self.repeat_cost_radius > 0.0
             && !matches!(self.penalty, PenaltyForm::Excess | PenaltyForm::Terminate)
         {
@@ -1049,15 +1097,40 @@ impl EppoConfig {
     /// The share of trajectories collected after `env_steps` environment
     /// steps whose goal is hidden (`goal_hidden_share`, `goal_hidden_ramp`).
     pub fn goal_hidden_share_at(&self, env_steps: u64) -> f64 {
-        let [from, until] = self.goal_hidden_ramp;
-        let ramp = if env_steps >= until {
-            1.0
-        } else if env_steps <= from {
-            0.0
+        self.goal_hidden_share * ramp_at(self.goal_hidden_ramp, env_steps)
+    }
+
+    /// The entries appended to `env`'s observation: the goal slots
+    /// (`goal_in_observation`), the hazard map (`hazards_in_observation`),
+    /// or none. The agent fills them itself.
+    pub fn shown_slots(&self, env: EnvName) -> usize {
+        if self.goal_in_observation {
+            GoalShown::SLOTS
+        } else if self.hazards_in_observation {
+            HazardsShown::slots(spawn_config(env).grid_size)
         } else {
-            (env_steps - from) as f64 / (until - from) as f64
-        };
-        self.goal_hidden_share * ramp
+            0
+        }
+    }
+
+    /// The share of the trajectories collected after `env_steps` environment
+    /// steps whose shown slots are blanked (goal or hazard map).
+    pub fn hidden_share_at(&self, env_steps: u64) -> f64 {
+        if self.hazards_in_observation {
+            self.hazard_hidden_share * ramp_at(self.hazard_hidden_ramp, env_steps)
+        } else {
+            self.goal_hidden_share_at(env_steps)
+        }
+    }
+
+    /// Whether the shown slots are ever blanked, so that the agent can be
+    /// evaluated with them blank.
+    pub fn slots_ever_hidden(&self) -> bool {
+        match (self.goal_in_observation, self.hazards_in_observation) {
+            (true, _) => self.goal_hidden_share > 0.0,
+            (_, true) => self.hazard_hidden_share > 0.0,
+            _ => true,
+        }
     }
 
     /// The novelty bonus's weight after `updates` updates (annealed).

@@ -215,7 +215,7 @@ pub fn load_checkpoint(path: &Path, env: EnvName) -> Result<LoadedAgent, EvalCmd
             let agent = EppoAgent::load(&ckpt, tch::Device::cuda_if_available())
                 .map_err(|e| bad(&ckpt, e.to_string()))?;
             let cfg = agent.config().clone();
-            // Goal slots (`goal_in_observation`) are the agent's, not the task's.
+            // Goal and hazard slots are the agent's, not the task's.
             check_shape(&ckpt, env, agent.env_obs_dim(), get("n_actions"), act_dim)?;
             let pretrain_tasks = crate::eppo::recorded_pretrain_tasks(&ckpt)
                 .map_err(|e| bad(&ckpt, e.to_string()))?;

@@ -943,3 +943,105 @@ fn hidden_goals_are_blank_throughout_and_such_a_policy_is_evaluated() {
     assert!(err.contains("obs has 5 entries, expected 2"), "{err}");
     std::fs::remove_dir_all(&out).unwrap();
 }
+
+/// The hazard rung (`hazards_in_observation`): every observation of a
+/// shown trajectory ends with its task's hazard map and the flag, a hidden
+/// one's with zeros throughout, in about the share asked; it is refused with
+/// goal slots, and a hidden share without the map; the checkpoint acts on
+/// the task's own observation, the map blank, where one always shown is
+/// refused by name.
+#[test]
+fn hidden_hazard_maps_are_blank_throughout_and_such_a_policy_is_evaluated() {
+    let cfg = EppoConfig {
+        hazards_in_observation: true,
+        hazard_hidden_share: 0.5,
+        n_envs: 8,
+        batch_size: 8,
+        ..tiny()
+    };
+    let slots = HazardsShown::slots(9);
+    assert_eq!(cfg.shown_slots(EnvName::DarkRoom), slots);
+    assert!(refused(
+        &EppoConfig {
+            goal_in_observation: true,
+            ..cfg.clone()
+        },
+        "goal_in_observation"
+    ));
+    assert!(refused(
+        &EppoConfig {
+            hazards_in_observation: false,
+            ..cfg.clone()
+        },
+        "hazards_in_observation"
+    ));
+    assert!(refused(
+        &EppoConfig {
+            hazard_hidden_ramp: [300, 100],
+            ..cfg.clone()
+        },
+        "hazard_hidden_ramp"
+    ));
+    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+    let od = 2 + slots;
+    assert_eq!(learner.spec.obs_dim, od, "position, map, flag");
+    let mut venv = training_venv(EnvName::DarkRoom, &cfg);
+    learner.collect(&mut venv).unwrap();
+    learner.collect(&mut venv).unwrap();
+    let (mut shown, mut hidden) = (0, 0);
+    for t in &learner.replay.trajectories {
+        let rows: Vec<&[f32]> = t.obs.chunks(od).chain(t.next_obs.chunks(od)).collect();
+        if rows[0][od - 1] == 1.0 {
+            let marked = rows[0][2..od - 1].iter().filter(|&&x| x == 1.0).count();
+            assert_eq!(marked, spawn_config(EnvName::DarkRoom).n_obstacles);
+            assert!(
+                rows.iter().all(|r| r[2..] == rows[0][2..]),
+                "one map throughout"
+            );
+            shown += 1;
+        } else {
+            assert!(
+                rows.iter().all(|r| r[2..].iter().all(|&x| x == 0.0)),
+                "blank throughout"
+            );
+            hidden += 1;
+        }
+    }
+    assert!(
+        shown >= 2 && hidden >= 2,
+        "{shown} shown, {hidden} hidden of 16"
+    );
+
+    let always = EppoConfig {
+        hazard_hidden_share: 0.0,
+        ..cfg.clone()
+    };
+    let (out, report) = train_darkroom(always, "hazards_shown");
+    let err = EppoAgent::load(&report.last_checkpoint, Device::Cpu)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(
+        err.contains("hazards_in_observation") && err.contains("hazard_hidden_share"),
+        "{err}"
+    );
+    std::fs::remove_dir_all(&out).unwrap();
+
+    let (out, report) = train_darkroom(cfg, "hazards_hidden");
+    let mut agent = EppoAgent::load(&report.last_checkpoint, Device::Cpu).unwrap();
+    assert_eq!(agent.env_obs_dim(), 2, "the grid's own position");
+    agent.reset(&[Conditioning::Budget { ctg: 5.0 }]).unwrap();
+    let step = StepInput {
+        obs: &[0.5, 0.5],
+        arrived_obs: &[0.0, 0.0],
+        prev_action: &[0.0; 5],
+        reward: &[0.0],
+        cost: &[0.0],
+        episode_start: &[true],
+    };
+    assert!(matches!(
+        agent.act(&step, true).unwrap(),
+        Actions::Discrete(_)
+    ));
+    std::fs::remove_dir_all(&out).unwrap();
+}
