@@ -81,9 +81,11 @@ class SafetyEnv(gym.Env):
             six-tuple ``(obs, reward, cost, terminated, truncated, info)``
             instead of Gymnasium's five-tuple. Through ``gymnasium.make`` add
             ``disable_env_checker=True``: Gymnasium's checker wants five.
-        max_episode_steps: the time limit in agent steps (default 30 for
-            SafeDarkRoom, 75 for Point and Car); the environment truncates
-            itself, so no ``TimeLimit`` wrapper is needed.
+        time_limit: the time limit in agent steps (default 30 for
+            SafeDarkRoom, 75 for Point and Car), after which the environment
+            truncates the episode itself. (``gymnasium.make``'s own
+            ``max_episode_steps`` adds Gymnasium's ``TimeLimit`` wrapper on
+            top, which cannot lengthen an episode.)
         physics_steps_per_action: Point and Car, MuJoCo physics steps per
             agent action (default 50, the paper's macro action).
         width, height: the size of rendered pictures.
@@ -102,7 +104,7 @@ class SafetyEnv(gym.Env):
         *,
         task: dict | None = None,
         safety_step: bool = False,
-        max_episode_steps: int | None = None,
+        time_limit: int | None = None,
         physics_steps_per_action: int | None = None,
         width: int = 256,
         height: int = 256,
@@ -110,7 +112,7 @@ class SafetyEnv(gym.Env):
         if render_mode is not None and render_mode not in self.metadata["render_modes"]:
             raise ValueError(f"render_mode {render_mode!r} is not one of {self.metadata['render_modes']} or None")
         self.render_mode = render_mode
-        self._env = _native.Env(self._name, max_episode_steps, physics_steps_per_action)
+        self._env = _native.Env(self._name, time_limit, physics_steps_per_action)
         self.observation_space = _space(self._env.observation_space)
         self.action_space = _space(self._env.action_space)
         self._discrete = isinstance(self.action_space, spaces.Discrete)

@@ -31,7 +31,7 @@ class SafetyVectorEnv(gym.vector.VectorEnv):
         task: the first task of every environment (see ``safety_envs.env``);
             ``reset(options={"task": t})`` sets ``t`` for all, or a list of
             ``num_envs`` tasks one each.
-        safety_step, max_episode_steps, physics_steps_per_action: as for the
+        safety_step, time_limit, physics_steps_per_action: as for the
             single environment.
 
     The costs are in ``info["cost"]`` (a ``(num_envs,)`` array).
@@ -47,18 +47,18 @@ class SafetyVectorEnv(gym.vector.VectorEnv):
         num_threads: int | None = None,
         task: dict | list | None = None,
         safety_step: bool = False,
-        max_episode_steps: int | None = None,
+        time_limit: int | None = None,
         physics_steps_per_action: int | None = None,
     ):
         if env_id not in ENV_NAMES:
             raise ValueError(f"unknown environment id {env_id!r}; valid: {sorted(ENV_NAMES)}")
         self._name = ENV_NAMES[env_id]
         threads = num_threads if num_threads is not None else (os.cpu_count() or 1)
-        self._vec = _native.VecEnv(self._name, num_envs, threads, max_episode_steps, physics_steps_per_action)
+        self._vec = _native.VecEnv(self._name, num_envs, threads, time_limit, physics_steps_per_action)
         self.num_envs = num_envs
         self.render_mode = None
         self.spec = gym.spec(env_id) if env_id in gym.registry else None
-        native_single = _native.Env(self._name, max_episode_steps, physics_steps_per_action)
+        native_single = _native.Env(self._name, time_limit, physics_steps_per_action)
         self.single_observation_space = _space(native_single.observation_space)
         self.single_action_space = _space(native_single.action_space)
         native_single.close()
