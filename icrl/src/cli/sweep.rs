@@ -149,13 +149,47 @@ impl SweepGrid {
         if grid.seeds.is_empty() {
             return Err(problem("seeds is empty: give at least one".into()));
         }
-        for (key, values) in &grid.grid {
-            if values.as_array().is_none_or(|a| a.is_empty()) {
+        let mut distinct = grid.seeds.clone();
+        distinct.sort_unstable();
+        distinct.dedup();
+        if distinct.len() != grid.seeds.len() {
+            return Err(problem(format!(
+                "seeds = {:?} repeats a seed: each seed once",
+                grid.seeds
+            )));
+        }
+        for table in ["set", "grid"] {
+            let keys = if table == "set" {
+                &grid.set
+            } else {
+                &grid.grid
+            };
+            if keys.contains_key("seed") {
                 return Err(problem(format!(
-                    "grid.{key} must be a non-empty list of values"
+                    "{table}.seed: the seeds are the grid file's `seeds` list, which the tasks \
+                     and the gathered table follow; move the values there"
                 )));
             }
         }
+        let mut tasks: u128 = grid.seeds.len() as u128;
+        for (key, values) in &grid.grid {
+            match values.as_array() {
+                Some(a) if !a.is_empty() => tasks = tasks.saturating_mul(a.len() as u128),
+                _ => {
+                    return Err(problem(format!(
+                        "grid.{key} must be a non-empty list of values"
+                    )));
+                }
+            }
+        }
+        if tasks > MAX_TASKS as u128 {
+            return Err(problem(format!(
+                "{tasks} tasks (seeds x every combination of [grid]): at most {MAX_TASKS}, \
+                 Slurm's default MaxArraySize less one; split the grid into several files"
+            )));
+        }
+        grid.check_script_text().map_err(problem)?;
+        grid.slurm.check_bounds().map_err(problem)?;
         let base = path
             .parent()
             .filter(|p| !p.as_os_str().is_empty())
@@ -268,6 +302,140 @@ impl SweepGrid {
     }
 }
 
+/// The most array tasks one grid file may ask for (Slurm's default
+/// `MaxArraySize` is 1001, indices 0 to 1000).
+const MAX_TASKS: usize = 1000;
+
+/// Refuses `text` where it would break out of its line in the generated
+/// script: a newline would start a command of its own, a NUL cannot be
+/// quoted at all, and other control characters have no place in a Slurm
+/// option or a path. Every text of the grid file that reaches the script
+/// passes here once, on load; [`slurm_script`] then quotes what it writes.
+fn check_script_text(what: &str, text: &str) -> Result<(), String> {
+    match text.chars().find(|c| c.is_control()) {
+        Some(c) => Err(format!(
+            "{what} = {text:?} holds the control character {c:?}, which the generated script \
+             cannot carry: remove it"
+        )),
+        None => Ok(()),
+    }
+}
+
+impl SweepGrid {
+    /// Every text of the grid file that the script carries.
+    fn check_script_text(&self) -> Result<(), String> {
+        let s = &self.slurm;
+        let texts = [
+            ("env", Some(self.env.clone())),
+            ("method", Some(self.method.clone())),
+            ("preset", Some(self.preset.clone())),
+            ("out", Some(self.out.display().to_string())),
+            (
+                "dataset",
+                self.dataset.as_ref().map(|d| d.display().to_string()),
+            ),
+            ("slurm.partition", s.partition.clone()),
+            ("slurm.account", s.account.clone()),
+            ("slurm.time", s.time.clone()),
+            ("slurm.mem", s.mem.clone()),
+            (
+                "slurm.icrl",
+                s.icrl.as_ref().map(|p| p.display().to_string()),
+            ),
+        ];
+        for (what, text) in texts {
+            if let Some(text) = text {
+                check_script_text(what, &text)?;
+            }
+        }
+        for (i, e) in s.extra.iter().enumerate() {
+            check_script_text(&format!("slurm.extra[{i}]"), e)?;
+        }
+        for (table, values) in [("set", &self.set), ("grid", &self.grid)] {
+            for (key, value) in values {
+                check_toml_text(&format!("{table}.{key}"), value)?;
+            }
+        }
+        Ok(())
+    }
+}
+
+/// [`check_script_text`] on every string inside `value` (its own
+/// characters, not its quoted TOML form).
+fn check_toml_text(what: &str, value: &toml::Value) -> Result<(), String> {
+    match value {
+        toml::Value::String(text) => check_script_text(what, text),
+        toml::Value::Array(items) => items.iter().try_for_each(|v| check_toml_text(what, v)),
+        toml::Value::Table(table) => table
+            .iter()
+            .try_for_each(|(k, v)| check_toml_text(&format!("{what}.{k}"), v)),
+        _ => Ok(()),
+    }
+}
+
+impl SlurmOptions {
+    /// Numbers and formats Slurm would refuse, or that would give a
+    /// nonsensical script.
+    fn check_bounds(&self) -> Result<(), String> {
+        if let Some(rate) = self.updates_per_second
+            && !(rate.is_finite() && rate >= MIN_UPDATES_PER_SECOND)
+        {
+            return Err(format!(
+                "slurm.updates_per_second = {rate}: must be at least {MIN_UPDATES_PER_SECOND} \
+                 (one update a day; measure it with a short run on the cluster), or set \
+                 slurm.time instead"
+            ));
+        }
+        if self.cpus_per_task == Some(0) {
+            return Err("slurm.cpus_per_task = 0: give 1 or more".into());
+        }
+        if let Some(time) = &self.time
+            && !slurm_time(time)
+        {
+            return Err(format!(
+                "slurm.time = {time:?} is not a Slurm time limit: MM, MM:SS, HH:MM:SS, D-HH, \
+                 D-HH:MM or D-HH:MM:SS"
+            ));
+        }
+        if let Some(mem) = &self.mem
+            && !slurm_mem(mem)
+        {
+            return Err(format!(
+                "slurm.mem = {mem:?} is not a Slurm memory size: a whole number with an \
+                 optional unit K, M, G or T (\"64G\")"
+            ));
+        }
+        Ok(())
+    }
+}
+
+/// One update a day: below it the time limit says nothing useful.
+const MIN_UPDATES_PER_SECOND: f64 = 1.0 / 86_400.0;
+
+/// Slurm's time formats: MM, MM:SS, HH:MM:SS, D-HH, D-HH:MM, D-HH:MM:SS.
+fn slurm_time(text: &str) -> bool {
+    let numbers = |part: &str, most: usize| {
+        let fields: Vec<&str> = part.split(':').collect();
+        fields.len() <= most
+            && fields
+                .iter()
+                .all(|f| !f.is_empty() && f.len() <= 6 && f.bytes().all(|b| b.is_ascii_digit()))
+    };
+    match text.split_once('-') {
+        Some((days, rest)) => numbers(days, 1) && numbers(rest, 3),
+        None => numbers(text, 3),
+    }
+}
+
+/// Slurm's memory sizes: digits, then at most one of K, M, G, T.
+fn slurm_mem(text: &str) -> bool {
+    let digits = text.trim_end_matches(['K', 'M', 'G', 'T']);
+    text.len() - digits.len() <= 1
+        && !digits.is_empty()
+        && digits.len() <= 12
+        && digits.bytes().all(|b| b.is_ascii_digit())
+}
+
 /// Updates per second of the quick presets, measured on one CPU core shared
 /// with other jobs (README): the default speed for the time limit.
 fn measured_updates_per_second(method: &str, env: &str, preset: &str) -> Option<f64> {
@@ -288,7 +456,8 @@ fn measured_updates_per_second(method: &str, env: &str, preset: &str) -> Option<
 /// measured speed (1.5x, plus 10 minutes for start-up and the final check).
 struct Resources {
     cpus: usize,
-    mem_gib: u64,
+    /// `slurm.mem`, else the estimate in GiB (`"4G"`).
+    mem: String,
     gpus: usize,
     time: String,
 }
@@ -335,7 +504,8 @@ fn resources(grid: &SweepGrid) -> Result<Resources, String> {
                         grid.method, grid.env, grid.preset
                     )
                 })?;
-            let seconds = (1.5 * updates as f64 / rate) as u64 + 600;
+            // Bounded by check_bounds: at most 1.5 days per update.
+            let seconds = (1.5 * updates as f64 / rate).min(u64::MAX as f64 / 2.0) as u64 + 600;
             format!(
                 "{:02}:{:02}:{:02}",
                 seconds / 3600,
@@ -346,7 +516,7 @@ fn resources(grid: &SweepGrid) -> Result<Resources, String> {
     };
     Ok(Resources {
         cpus: s.cpus_per_task.unwrap_or(threads as usize),
-        mem_gib,
+        mem: s.mem.clone().unwrap_or_else(|| format!("{mem_gib}G")),
         gpus: s.gpus.unwrap_or(usize::from(cuda)),
         time,
     })
@@ -374,6 +544,7 @@ pub fn slurm_script(grid: &SweepGrid, icrl: &Path) -> Result<String, SweepError>
         path: grid.out.clone(),
         problem,
     };
+    check_script_text("the icrl binary's path", &icrl.display().to_string()).map_err(grid_err)?;
     let r = resources(grid).map_err(grid_err)?;
     let tasks = grid.tasks();
     let mut s = String::new();
@@ -396,7 +567,7 @@ pub fn slurm_script(grid: &SweepGrid, icrl: &Path) -> Result<String, SweepError>
     ));
     line(format!("#SBATCH --array=0-{}", tasks.len() - 1));
     line(format!("#SBATCH --cpus-per-task={}", r.cpus));
-    line(format!("#SBATCH --mem={}G", r.mem_gib));
+    line(format!("#SBATCH --mem={}", r.mem));
     line(format!("#SBATCH --time={}", r.time));
     if r.gpus > 0 {
         line(format!("#SBATCH --gres=gpu:{}", r.gpus));
@@ -721,6 +892,119 @@ account = "proj"
             1,
             "one run folder"
         );
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// A grid file's texts reach the generated script only when they hold no
+    /// control character: a newline in any Slurm option, the output folder,
+    /// a setting or the icrl path would put a command on a line of its own,
+    /// and a NUL cannot be quoted. Each is refused by its key, and nothing is
+    /// written.
+    #[test]
+    fn no_text_of_a_grid_file_can_add_a_line_to_the_script() {
+        let dir = std::env::temp_dir().join(format!("icrl-sweep-inject-{}", std::process::id()));
+        let base = "env = \"darkroom\"\nseeds = [0]\n[set]\ntotal_updates = 600\n";
+        let cases = [
+            (
+                "slurm.partition",
+                format!("{base}[slurm]\npartition = \"cpu\\ntouch FILE\"\n"),
+            ),
+            (
+                "slurm.account",
+                format!("{base}[slurm]\naccount = \"a\\ntouch FILE\"\n"),
+            ),
+            (
+                "slurm.time",
+                format!("{base}[slurm]\ntime = \"01:00:00\\ntouch FILE\"\n"),
+            ),
+            (
+                "slurm.extra[0]",
+                format!("{base}[slurm]\nextra = [\"--qos=x\\ntouch FILE\"]\n"),
+            ),
+            (
+                "slurm.icrl",
+                format!("{base}[slurm]\nicrl = \"/bin/icrl\\u0000$(touch FILE)\"\n"),
+            ),
+            (
+                "grid.lr",
+                "env = \"darkroom\"\nseeds = [0]\n[grid]\nlr = [\"1e-4\\nx\"]\n".into(),
+            ),
+        ];
+        for (key, text) in cases {
+            let text = format!("out = \"runs\"\n{text}");
+            let err = SweepGrid::load(&grid_file(&dir, &text))
+                .unwrap_err()
+                .to_string();
+            assert!(
+                err.contains(key) && err.contains("control character"),
+                "{key}: {err}"
+            );
+        }
+        let out = "env = \"darkroom\"\nseeds = [0]\nout = \"runs\\ntouch FILE\\n#\"\n";
+        let err = SweepGrid::load(&grid_file(&dir, out))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("out = ") && err.contains("control character"),
+            "{err}"
+        );
+        // The icrl binary named on the command line passes the same check.
+        let grid = SweepGrid::load(&grid_file(
+            &dir,
+            "env = \"darkroom\"\nseeds = [0]\nout = \"runs\"\n[slurm]\ntime = \"01:00:00\"\n",
+        ))
+        .unwrap();
+        let err = slurm_script(&grid, Path::new("/bin/icrl\n touch FILE"))
+            .unwrap_err()
+            .to_string();
+        assert!(
+            err.contains("icrl binary") && err.contains("control character"),
+            "{err}"
+        );
+        assert!(!dir.join("runs").join("sweep.sbatch").exists());
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// Numbers and formats that gave silently wrong scripts are refused with
+    /// their bound: a speed that wraps the time limit, no CPU, a time or
+    /// memory Slurm cannot read, a seed given twice or in [grid] beside
+    /// `seeds`, an array past Slurm's size; `mem` is written as given.
+    #[test]
+    fn slurm_settings_out_of_bounds_are_refused_and_mem_is_honoured() {
+        let dir = std::env::temp_dir().join(format!("icrl-sweep-bounds-{}", std::process::id()));
+        let base = "env = \"darkroom\"\nout = \"runs\"\n";
+        let refused = |text: &str, key: &str| {
+            let err = SweepGrid::load(&grid_file(&dir, &format!("{base}{text}")))
+                .unwrap_err()
+                .to_string();
+            assert!(err.contains(key), "{key}: {err}");
+        };
+        for rate in ["0", "1e-300", "-1", "nan", "inf"] {
+            refused(
+                &format!("seeds = [0]\n[slurm]\nupdates_per_second = {rate}\n"),
+                "updates_per_second",
+            );
+        }
+        refused("seeds = [0]\n[slurm]\ncpus_per_task = 0\n", "cpus_per_task");
+        refused("seeds = [0]\n[slurm]\ntime = \"garbage\"\n", "slurm.time");
+        refused("seeds = [0]\n[slurm]\nmem = \"lots\"\n", "slurm.mem");
+        refused("seeds = [0, 0]\n", "repeats a seed");
+        refused("seeds = [0]\n[grid]\nseed = [1, 2]\n", "grid.seed");
+        refused("seeds = [0]\n[set]\nseed = 3\n", "set.seed");
+        let big: String = (0..10)
+            .map(|k| format!("k{k} = [0, 1, 2, 3, 4, 5, 6, 7, 8, 9]\n"))
+            .collect();
+        refused(&format!("seeds = [0]\n[grid]\n{big}"), "at most 1000");
+        for time in ["30", "30:00", "01:00:00", "2-12", "2-12:30", "2-12:30:00"] {
+            assert!(slurm_time(time), "{time}");
+        }
+        let grid = SweepGrid::load(&grid_file(
+            &dir,
+            &format!("{base}seeds = [0]\n[slurm]\nmem = \"64G\"\ntime = \"01:00:00\"\n"),
+        ))
+        .unwrap();
+        let script = slurm_script(&grid, Path::new("/bin/icrl")).unwrap();
+        assert!(script.contains("#SBATCH --mem=64G\n"), "{script}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 }

@@ -92,6 +92,25 @@ pub fn merge(
     existing: Existing,
 ) -> Result<MergeReport, HistoryError> {
     let refuse = |p: &Path, what: String| HistoryError::new(p, Problem::Invalid(what));
+    // Whatever `--force` says: writing the view over a shard would replace
+    // the shard's histories with a view of themselves.
+    // The same file by any path (a link, another spelling): device and inode.
+    let file_id = |p: &Path| {
+        use std::os::unix::fs::MetadataExt;
+        std::fs::metadata(p).ok().map(|m| (m.dev(), m.ino()))
+    };
+    if let Some(target) = file_id(out)
+        && let Some(shard) = shards.iter().find(|s| file_id(s) == Some(target))
+    {
+        return Err(refuse(
+            out,
+            format!(
+                "it is also the shard {} to merge: the merged file would replace it; give \
+                 --out a new file",
+                shard.display()
+            ),
+        ));
+    }
     histories::check_output_path(out, existing)?;
     if shards.is_empty() {
         return Err(refuse(out, "no shards to merge".into()));
@@ -405,6 +424,35 @@ mod tests {
         let back = read_histories(&out_abs, None);
         std::env::set_current_dir(here).unwrap();
         assert_eq!(back.unwrap(), tiny_file(3));
+        std::fs::remove_dir_all(dir).unwrap();
+    }
+
+    /// An output that is one of the shards (by any path to it: another
+    /// spelling, a hard link) is refused, with or without force, and the
+    /// shard keeps its histories.
+    #[test]
+    fn a_merge_never_writes_over_one_of_its_shards() {
+        let dir = tmpdir("merge-self");
+        let shards = write_shards(&dir);
+        let before = std::fs::read(&shards[0]).unwrap();
+        let hard_link = dir.join("alias.h5");
+        std::fs::hard_link(&shards[0], &hard_link).unwrap();
+        let aliases = [
+            shards[0].clone(),
+            dir.join(".").join(shards[0].file_name().unwrap()),
+            hard_link,
+        ];
+        for out in aliases {
+            for existing in [Existing::Refuse, Existing::Replace] {
+                let err = merge(&out, &shards, existing).unwrap_err().to_string();
+                assert!(err.contains("also the shard"), "{err}");
+            }
+        }
+        assert_eq!(
+            std::fs::read(&shards[0]).unwrap(),
+            before,
+            "the shard is untouched"
+        );
         std::fs::remove_dir_all(dir).unwrap();
     }
 
