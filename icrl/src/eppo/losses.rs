@@ -240,11 +240,11 @@ fn td_targets(
                 // Expected value under the target actor: sum_a pi'(a) Q'(h, a).
                 let pi = target
                     .actor
-                    .forward(&ht)
+                    .forward(ht)
                     .softmax(-1, Kind::Float)
                     .unsqueeze(2); // (B, L, 1, A)
                 Box::new(move |head| {
-                    (target.critic_values(head, &ht, false) * &pi).sum_dim_intlist(
+                    (target.critic_values(head, ht, false) * &pi).sum_dim_intlist(
                         -1,
                         false,
                         Kind::Float,
@@ -252,9 +252,9 @@ fn td_targets(
                 })
             }
             None => {
-                let (mean, log_std) = target.gaussian(&ht);
+                let (mean, log_std) = target.gaussian(ht);
                 let (a, _) = tanh_gaussian_sample(&mean, &log_std, &mean.randn_like());
-                Box::new(move |head| target.critic_sa(head, &ht, &a, false))
+                Box::new(move |head| target.critic_sa(head, ht, &a, false))
             }
         };
         let mean = |q: Tensor| q.mean_dim(-1, false, Kind::Float);
