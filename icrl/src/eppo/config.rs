@@ -581,6 +581,10 @@ pub enum ViolationSignal {
 }
 
 /// Absent from a config: lambda stops rising once 5% of later episodes are over budget.
+/// The most environment steps a run may need to reach its last update
+/// (days of collection at the fastest environment's rate).
+const MOST_ENV_STEPS: f64 = 1e10;
+
 /// 0 before `[from, until]`, 1 after, linear across it.
 fn ramp_at([from, until]: [u64; 2], env_steps: u64) -> f64 {
     if env_steps >= until {
@@ -1039,6 +1043,33 @@ impl EppoConfig {
                 "replay_capacity = {} cannot hold one trajectory of {longest} steps",
                 self.replay_capacity
             ));
+        }
+        // Counts and ratios bounded by what the run can use, so that no
+        // setting leaves it computing one update for hours or waiting forever.
+        if self.n_step > longest {
+            return bad(format!(
+                "n_step = {}: at most k_max * max_episode_steps = {longest}, the longest \
+                 trajectory (a target sums rewards inside one)",
+                self.n_step
+            ));
+        }
+        if self.learning_starts > self.replay_capacity as u64 {
+            return bad(format!(
+                "learning_starts = {}: at most replay_capacity = {} environment steps (updates \
+                 would wait for more steps than the replay keeps)",
+                self.learning_starts, self.replay_capacity
+            ));
+        }
+        if let Some(r) = self.replay_ratio {
+            let needed = self.learning_starts as f64 + self.total_updates as f64 / r;
+            if needed > MOST_ENV_STEPS {
+                return bad(format!(
+                    "replay_ratio = {r:e}: total_updates = {} would need {needed:.3e} environment \
+                     steps, more than {MOST_ENV_STEPS:e}; raise it to at least {:.3e}",
+                    self.total_updates,
+                    self.total_updates as f64 / MOST_ENV_STEPS
+                ));
+            }
         }
         parse_device(&self.device)?;
         Ok(())

@@ -393,3 +393,63 @@ fn an_overlapped_stop_checkpoints_and_resumes() {
     );
     std::fs::remove_dir_all(&out).unwrap();
 }
+
+/// Settings that hung a run in the third hostile trial are refused with
+/// their bound: `n_step` past the longest trajectory (one update took 40 s
+/// at 10^6), `learning_starts` past what the replay keeps (10^12 never
+/// reached update 1), a `replay_ratio` too small to reach `total_updates`
+/// (10^-300 never owed an update); the presets' values pass.
+#[test]
+fn settings_that_would_hang_a_run_are_refused_with_their_bound() {
+    let longest = tiny().k_max * tiny().max_episode_steps;
+    let cases = [
+        (
+            EppoConfig {
+                n_step: 1_000_000,
+                ..tiny()
+            },
+            format!("n_step = 1000000: at most k_max * max_episode_steps = {longest}"),
+        ),
+        (
+            EppoConfig {
+                learning_starts: 1_000_000_000_000,
+                ..tiny()
+            },
+            "learning_starts = 1000000000000: at most replay_capacity = 1000".into(),
+        ),
+        (
+            EppoConfig {
+                replay_ratio: Some(1e-300),
+                ..tiny()
+            },
+            "replay_ratio = 1e-300: total_updates = 4 would need".into(),
+        ),
+    ];
+    for (cfg, want) in cases {
+        let err = cfg.validate().unwrap_err().to_string();
+        assert!(err.contains(&want), "{want}: {err}");
+    }
+    let err = EppoConfig {
+        replay_ratio: Some(1e-300),
+        ..tiny()
+    }
+    .validate()
+    .unwrap_err()
+    .to_string();
+    assert!(err.contains("raise it to at least"), "{err}");
+    assert!(
+        EppoConfig {
+            n_step: longest,
+            ..tiny()
+        }
+        .validate()
+        .is_ok()
+    );
+    for env in ["darkroom", "point", "car"] {
+        for preset in ["quick", "table1"] {
+            let table = crate::presets::preset_table("eppo", env, preset).unwrap();
+            let cfg: EppoConfig = crate::presets::resolve(preset, table).unwrap();
+            cfg.validate().unwrap();
+        }
+    }
+}
