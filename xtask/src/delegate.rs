@@ -10,10 +10,11 @@ use std::process::{Command, ExitCode, ExitStatus};
 use anyhow::{Context, Result};
 
 use crate::BenchTarget;
-use crate::setup::{repo_root, setup};
+use crate::setup::{python_venv, repo_root, setup};
 
-/// `cargo xtask test`: `cargo test --workspace ARGS`, or `cargo test ARGS`
-/// when ARGS pick packages (`-p`), since `--workspace` would override them.
+/// `cargo xtask test`: `cargo test --workspace ARGS`, then the Python
+/// package's tests ([`python_tests`]); or only `cargo test ARGS` when ARGS
+/// pick packages (`-p`), since `--workspace` would override them.
 pub fn test(args: &[String]) -> Result<ExitCode> {
     setup()?;
     let cargo_args = args.iter().take_while(|a| a.as_str() != "--");
@@ -21,10 +22,52 @@ pub fn test(args: &[String]) -> Result<ExitCode> {
         .map(String::as_str)
         .any(|a| a == "-p" || a.starts_with("--package") || (a.starts_with("-p") && a.len() > 2));
     if picks_packages {
-        cargo(&["test"], args)
-    } else {
-        cargo(&["test", "--workspace"], args)
+        return cargo(&["test"], args);
     }
+    let code = cargo(&["test", "--workspace"], args)?;
+    if code != ExitCode::SUCCESS {
+        return Ok(code);
+    }
+    python_tests()
+}
+
+/// The Python package (`safety-envs/python`): built into the set-up's virtual
+/// environment with `maturin develop` (the dev profile, sharing `target/`
+/// with the cargo tests), then its pytest suite.
+fn python_tests() -> Result<ExitCode> {
+    let root = repo_root();
+    let venv = python_venv(root);
+    let bin = venv.join("bin");
+    let path = env::join_paths(
+        std::iter::once(bin.clone())
+            .chain(env::split_paths(&env::var_os("PATH").unwrap_or_default())),
+    )?;
+    let package = root.join("safety-envs").join("python");
+    let steps: [(&str, Command); 2] = [
+        ("maturin develop (safety-envs/python)", {
+            let mut c = Command::new(bin.join("maturin"));
+            c.args(["develop", "--quiet"]).current_dir(&package);
+            c
+        }),
+        ("pytest safety-envs/python/tests", {
+            let mut c = Command::new(bin.join("python"));
+            c.args(["-m", "pytest", "-q", "tests"])
+                .current_dir(&package);
+            c
+        }),
+    ];
+    for (what, mut command) in steps {
+        println!("xtask: {what}");
+        let status = command
+            .env("VIRTUAL_ENV", &venv)
+            .env("PATH", &path)
+            .status()
+            .with_context(|| format!("could not start {what}"))?;
+        if !status.success() {
+            return Ok(exit_code(status));
+        }
+    }
+    Ok(ExitCode::SUCCESS)
 }
 
 /// `cargo xtask test --slurm`: builds `icrl`, then runs `tests/slurm/run.sh`

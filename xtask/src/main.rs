@@ -26,9 +26,11 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     /// Install what is missing: Debian packages (MuJoCo 2.2, OSMesa, libclang,
-    /// HDF5), libtorch 2.11.0 into `.libtorch/`, and Python's h5py.
+    /// HDF5), libtorch 2.11.0 into `.libtorch/`, Python's h5py, and the Python
+    /// package's test environment (`target/python-venv`).
     Setup,
-    /// Set up, then run `cargo test --workspace [ARGS...]`.
+    /// Set up, then run `cargo test --workspace [ARGS...]`, then build the
+    /// Python package and run its pytest suite (not when ARGS pick packages).
     Test {
         /// Instead: install Slurm (slurm-wlm, munge) when missing, start a one-node
         /// cluster on this machine, and run a sweep and a sharded dataset through it

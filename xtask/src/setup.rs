@@ -10,6 +10,9 @@
 //!    `libtorch_cpu.so` names as needed even without a GPU. `.cargo/config.toml`
 //!    points `LIBTORCH` at that folder. A `LIBTORCH` set by the user wins.
 //! 3. Python's `h5py`, with which the tests read back our HDF5 files.
+//! 4. A virtual environment in `target/python-venv` with what the Python
+//!    package's tests need (maturin, Gymnasium, numpy, pytest), from PyPI:
+//!    Debian's Python is externally managed, so they never go into it.
 
 use std::env;
 use std::ffi::OsString;
@@ -83,7 +86,8 @@ pub fn setup() -> Result<()> {
     apt_ensure(&packages)?;
 
     libtorch.ensure(repo)?;
-    ensure_h5py()
+    ensure_h5py()?;
+    ensure_python_venv(repo)
 }
 
 /// Where libtorch comes from.
@@ -297,9 +301,81 @@ fn ensure_h5py() -> Result<()> {
     Ok(())
 }
 
+/// What the Python package's tests need, installed into [`python_venv`]:
+/// the build backend, the package's own dependencies, and pytest.
+const PYTHON_TEST_PACKAGES: [&str; 4] = [
+    "maturin>=1.9,<2",
+    "gymnasium>=1.0,<2",
+    "numpy>=1.24",
+    "pytest>=7",
+];
+
+/// The virtual environment the Python package is built into and tested
+/// from (ignored by git, under `target/`).
+pub fn python_venv(repo: &Path) -> PathBuf {
+    repo.join("target").join("python-venv")
+}
+
+/// Makes sure [`python_venv`] exists and imports everything in
+/// [`PYTHON_TEST_PACKAGES`]: creates it (Debian's `python3-venv` first, when
+/// `python3 -m venv` would fail without it) and `pip install`s into it.
+fn ensure_python_venv(repo: &Path) -> Result<()> {
+    let venv = python_venv(repo);
+    let python = venv.join("bin").join("python");
+    let has_all = "import importlib.util, sys; \
+        sys.exit(any(importlib.util.find_spec(m) is None for m in ('maturin', 'gymnasium', 'numpy', 'pytest')))";
+    if python_ok_with(&python, has_all) {
+        println!("setup: Python test environment present (target/python-venv)");
+        return Ok(());
+    }
+    let start = Instant::now();
+    if !python.is_file() {
+        // Debian ships venv's pip bootstrap (ensurepip) in python3-venv.
+        if !python_ok("import ensurepip, venv") {
+            apt_ensure(&["python3-venv"])?;
+        }
+        println!("setup: creating the Python test environment (target/python-venv)");
+        run(
+            Command::new("python3").args(["-m", "venv"]).arg(&venv),
+            "python3 -m venv target/python-venv",
+        )?;
+    }
+    println!(
+        "setup: installing {} into target/python-venv (pip)",
+        PYTHON_TEST_PACKAGES.join(", ")
+    );
+    run(
+        Command::new(&python)
+            .args([
+                "-m",
+                "pip",
+                "install",
+                "--quiet",
+                "--disable-pip-version-check",
+            ])
+            .args(PYTHON_TEST_PACKAGES),
+        "pip install into target/python-venv",
+    )?;
+    ensure!(
+        python_ok_with(&python, has_all),
+        "the packages were installed but {} still cannot import them",
+        python.display()
+    );
+    println!(
+        "setup: Python test environment installed ({:.0} s)",
+        start.elapsed().as_secs_f64()
+    );
+    Ok(())
+}
+
 /// Whether `python3 -c code` runs and exits 0 (false when there is no python3).
 fn python_ok(code: &str) -> bool {
-    Command::new("python3")
+    python_ok_with(Path::new("python3"), code)
+}
+
+/// Whether `python -c code` runs and exits 0 (false when `python` is missing).
+fn python_ok_with(python: &Path, code: &str) -> bool {
+    Command::new(python)
         .args(["-c", code])
         .stdin(Stdio::null())
         .stdout(Stdio::null())
