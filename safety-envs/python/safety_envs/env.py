@@ -128,7 +128,7 @@ class SafetyEnv(gym.Env):
 
     def set_task(self, task: dict) -> None:
         """Places the goal and hazards for the following episodes (kept across
-        resets). Takes effect at the next :meth:`reset`."""
+        resets); call :meth:`reset` next, since the agent stays where it is."""
         goal, hazards = _resolve_task(self._name, task)
         self._env.set_task(goal, hazards)
 

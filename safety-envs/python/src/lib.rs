@@ -130,7 +130,12 @@ fn rust_rollout<'py>(
     for row in actions.rows() {
         let row: Vec<f32> = row.iter().copied().collect();
         let action = if discrete {
-            Action::Discrete(row[0] as usize)
+            let Some(&a) = row.first() else {
+                return Err(to_py(EnvError::InvalidAction(
+                    "an empty action row for SafeDarkRoom".into(),
+                )));
+            };
+            Action::Discrete(a as usize)
         } else {
             Action::Continuous(&row)
         };
