@@ -171,6 +171,125 @@ fn tiny_eppo_run(out: &Path) -> (PathBuf, String) {
     (run, stdout)
 }
 
+/// Trial 3, class 6: `icrl pretrain ... | head -n 1` panicked after training
+/// ("failed printing to stdout: Broken pipe", exit 101). With stdout's
+/// reader gone the run still trains to its end and writes its checkpoint,
+/// then ends quietly on the closed pipe: no panic, no backtrace.
+#[test]
+fn a_closed_stdout_ends_a_run_quietly_after_its_checkpoint() {
+    use std::os::unix::process::ExitStatusExt;
+    let dir = tmp("closed-stdout");
+    let mut args: Vec<String> = ["pretrain", "--env", "darkroom", "--out", &s(&dir)]
+        .map(String::from)
+        .to_vec();
+    for set in [
+        "max_episode_steps=6",
+        "k_min=2",
+        "k_max=2",
+        "n_envs=2",
+        "batch_size=2",
+        "replay_capacity=1000",
+        "encoder_hidden=16",
+        "head_hidden=16",
+        "model.d_model=16",
+        "model.n_heads=2",
+        "model.n_layers=1",
+        "model.d_ff=32",
+        "model.max_len=12",
+        "total_updates=2",
+        "updates_per_round=2",
+        "learning_starts=0",
+        "checkpoint_every=2",
+        "torch_threads=1",
+    ] {
+        args.extend(["--set".to_string(), set.to_string()]);
+    }
+    let mut child = Command::new(env!("CARGO_BIN_EXE_icrl"))
+        .args(&args)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    drop(child.stdout.take()); // the reader is gone before anything is printed
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert!(
+        !err.contains("panicked") && !err.contains("backtrace") && !err.contains("Broken pipe"),
+        "{err}"
+    );
+    assert!(
+        out.status.success() || out.status.signal() == Some(libc::SIGPIPE),
+        "ended by {:?}: {err}",
+        out.status
+    );
+    let run = std::fs::read_dir(&dir)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    assert!(
+        run.join("checkpoints/step_2").is_dir(),
+        "the checkpoint is on disk"
+    );
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Trial 3, class 7: `pretrain --method ad --dataset FIFO` blocked on the
+/// read where no stop could end it; a FIFO as a merge shard or as
+/// `plot-histories` input blocked likewise. Each is refused at once, naming
+/// what the path is.
+#[test]
+fn a_fifo_where_histories_are_read_is_refused_at_once() {
+    let dir = tmp("fifo-read");
+    let fifo = dir.join("data.h5");
+    assert!(
+        Command::new("mkfifo")
+            .arg(&fifo)
+            .status()
+            .unwrap()
+            .success()
+    );
+    let f = s(&fifo);
+    let out = s(&dir.join("x"));
+    let merged = s(&dir.join("all.h5"));
+    for args in [
+        vec![
+            "pretrain",
+            "--env",
+            "darkroom",
+            "--method",
+            "ad",
+            "--dataset",
+            &f,
+            "--out",
+            &out,
+        ],
+        vec!["plot-histories", &f, "--out", &out],
+        vec!["dataset", "merge", "--out", &merged, &f],
+    ] {
+        let mut child = Command::new(env!("CARGO_BIN_EXE_icrl"))
+            .args(&args)
+            .stdout(std::process::Stdio::piped())
+            .stderr(std::process::Stdio::piped())
+            .spawn()
+            .unwrap();
+        let started = std::time::Instant::now();
+        while child.try_wait().unwrap().is_none() {
+            if started.elapsed().as_secs() > 60 {
+                child.kill().unwrap();
+                panic!("{args:?} blocked on the FIFO");
+            }
+            std::thread::sleep(std::time::Duration::from_millis(50));
+        }
+        refused(
+            &child.wait_with_output().unwrap(),
+            "it is a FIFO, not a regular file",
+        );
+    }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// `eval` of `checkpoints` (none: the random policy alone), tiny.
 fn eval(checkpoints: &[&Path], out: &Path, extra: &[&str]) -> Output {
     let out = s(out);

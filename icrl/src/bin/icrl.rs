@@ -531,6 +531,13 @@ fn pretrain_with_stop(args: PretrainArgs) -> ExitCode {
 }
 
 fn main() -> ExitCode {
+    // A closed stdout (`icrl pretrain ... | head -n 1`) ends the process
+    // quietly, as it ends any Unix filter, not with a panic in `println!`:
+    // what the output reports (checkpoints, datasets) is on disk before it.
+    // SAFETY: at the start of main, before any other thread exists.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     let cli = Cli::parse();
     let result = match cli.command {
         Command::Pretrain(args) => return pretrain_with_stop(args),

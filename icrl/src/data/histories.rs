@@ -104,10 +104,35 @@ pub(crate) fn seal(path: &Path) -> std::io::Result<()> {
     f.sync_all()
 }
 
+/// Refuses a path that is not a regular file before anything opens it:
+/// opening a FIFO blocks until a writer comes, where no stop signal can end
+/// the wait, and a device or a folder holds no histories.
+fn regular_file(path: &Path) -> Result<(), Problem> {
+    use std::os::unix::fs::FileTypeExt;
+    let kind = std::fs::metadata(path)
+        .map_err(|e| Problem::Unreadable(e.to_string()))?
+        .file_type();
+    let what = if kind.is_file() {
+        return Ok(());
+    } else if kind.is_fifo() {
+        "a FIFO"
+    } else if kind.is_dir() {
+        "a folder"
+    } else if kind.is_socket() {
+        "a socket"
+    } else {
+        "a device"
+    };
+    Err(Problem::Unreadable(format!(
+        "it is {what}, not a regular file: give the dataset's .h5 file"
+    )))
+}
+
 /// Checks the checksum in the user block and returns it. `Ok(None)`: the
 /// file has no checksum (written elsewhere); an error: the bytes do not match it.
 pub(crate) fn verify_seal(path: &Path) -> Result<Option<String>, Problem> {
     use std::io::Read;
+    regular_file(path)?;
     let mut head = vec![0u8; CHECKSUM_TAG.len() + 64];
     let mut f = std::fs::File::open(path).map_err(|e| Problem::Unreadable(e.to_string()))?;
     if f.read_exact(&mut head).is_err() || !head.starts_with(CHECKSUM_TAG) {
