@@ -609,6 +609,16 @@ impl RunDir {
     /// Writes the resolved configuration.
     pub fn write_config(&self, toml_text: &str) -> Result<(), CheckpointError> {
         let path = self.config_path();
+        // Never through a link: a resume with --set would rewrite whatever
+        // file the link names.
+        if fs::symlink_metadata(&path).is_ok_and(|m| m.file_type().is_symlink()) {
+            return Err(CheckpointError::Invalid {
+                path,
+                problem: "it is a symbolic link, which icrl never writes through".into(),
+                fix: "replace the link by the run's own config.toml (a copy of what it names)"
+                    .into(),
+            });
+        }
         fs::write(&path, toml_text).map_err(io(&path))
     }
 
@@ -1373,6 +1383,22 @@ mod tests {
             0
         );
         fs::remove_dir_all(&dir).unwrap();
+    }
+
+    /// A run's config.toml that is a symbolic link (to a user's file) is
+    /// refused by name on write, and the file it names keeps its contents.
+    #[test]
+    fn a_config_is_never_written_through_a_link() {
+        let root = std::env::temp_dir().join(format!("icrl-ckpt-config-{}", std::process::id()));
+        let _ = fs::remove_dir_all(&root);
+        let run = RunDir::create(&root, "darkroom", "test", 1).unwrap();
+        let theirs = root.join("notes.toml");
+        fs::write(&theirs, "mine = true").unwrap();
+        std::os::unix::fs::symlink(&theirs, run.config_path()).unwrap();
+        let err = run.write_config("x = 1").unwrap_err().to_string();
+        assert!(err.contains("symbolic link"), "{err}");
+        assert_eq!(fs::read_to_string(&theirs).unwrap(), "mine = true");
+        fs::remove_dir_all(&root).unwrap();
     }
 
     #[test]

@@ -372,17 +372,46 @@ impl Lock {
     /// `remove`: delete the lock file when done (a lock beside an output;
     /// a run keeps its `.lock`).
     pub fn acquire(lock_path: &Path, what: &str, remove: bool) -> Result<Self, OutputError> {
-        use std::os::unix::fs::MetadataExt;
+        use std::os::unix::fs::{FileTypeExt, MetadataExt, OpenOptionsExt};
         loop {
+            // A lock is never written through a link: the pid would land in
+            // whatever file the link names.
+            if fs::symlink_metadata(lock_path).is_ok_and(|m| m.file_type().is_symlink()) {
+                return Err(OutputError::new(
+                    lock_path,
+                    "the lock file is a symbolic link, which icrl never writes through: remove it"
+                        .to_string(),
+                ));
+            }
             let mut file = fs::OpenOptions::new()
                 .read(true)
                 .write(true)
                 .create(true)
                 .truncate(false)
+                .custom_flags(nix::fcntl::OFlag::O_NOFOLLOW.bits())
                 .open(lock_path)
                 .map_err(|e| {
                     OutputError::new(lock_path, format!("cannot create the lock file: {e}"))
                 })?;
+            let kind = file
+                .metadata()
+                .map_err(|e| {
+                    OutputError::new(lock_path, format!("cannot read the lock file: {e}"))
+                })?
+                .file_type();
+            if !kind.is_file() {
+                let is = if kind.is_fifo() {
+                    "a FIFO"
+                } else if kind.is_dir() {
+                    "a folder"
+                } else {
+                    "a device"
+                };
+                return Err(OutputError::new(
+                    lock_path,
+                    format!("the lock file is {is}, not a regular file: remove it"),
+                ));
+            }
             match file.try_lock() {
                 Ok(()) => {}
                 Err(fs::TryLockError::WouldBlock) => {
@@ -451,6 +480,42 @@ mod tests {
         let _ = fs::remove_dir_all(&d);
         fs::create_dir_all(&d).unwrap();
         d
+    }
+
+    /// A lock file that is a symbolic link (to a user's file) or a FIFO is
+    /// refused by name, and the link's target keeps its contents.
+    #[test]
+    fn a_lock_is_never_written_through_a_link_or_into_a_fifo() {
+        let d = dir("lock-link");
+        let theirs = d.join("notes.txt");
+        fs::write(&theirs, "mine").unwrap();
+        let link = d.join(".lock");
+        std::os::unix::fs::symlink(&theirs, &link).unwrap();
+        let err = Lock::acquire(&link, "the run", false)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(err.contains("symbolic link"), "{err}");
+        assert_eq!(fs::read_to_string(&theirs).unwrap(), "mine");
+        let dangling = d.join("dangling.lock");
+        std::os::unix::fs::symlink(d.join("nowhere"), &dangling).unwrap();
+        let err = Lock::acquire(&dangling, "the run", false)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(err.contains("symbolic link"), "{err}");
+        assert!(
+            !d.join("nowhere").exists(),
+            "a dangling link is not followed"
+        );
+        let fifo = d.join("fifo.lock");
+        nix::unistd::mkfifo(&fifo, nix::sys::stat::Mode::S_IRWXU).unwrap();
+        let err = Lock::acquire(&fifo, "the run", false)
+            .err()
+            .unwrap()
+            .to_string();
+        assert!(err.contains("a FIFO, not a regular file"), "{err}");
+        fs::remove_dir_all(&d).unwrap();
     }
 
     #[test]
