@@ -125,16 +125,12 @@ fn dataset_never_replaces_what_is_not_ours() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
-/// A tiny darkroom EPPO run (2 updates) pretrained on budgets [2, 4];
-/// returns its run folder and what it printed.
-fn tiny_eppo_run(out: &Path) -> (PathBuf, String) {
-    let mut args = vec![
-        "pretrain",
-        "--env",
-        "darkroom",
-        "--out",
-        out.to_str().unwrap(),
-    ];
+/// The arguments of a tiny darkroom EPPO run (2 updates) into `out`,
+/// pretrained on budgets [2, 4].
+fn tiny_eppo_args(out: &Path) -> Vec<String> {
+    let mut args: Vec<String> = ["pretrain", "--env", "darkroom", "--out", &s(out)]
+        .map(String::from)
+        .to_vec();
     for set in [
         "max_episode_steps=6",
         "k_min=2",
@@ -158,8 +154,16 @@ fn tiny_eppo_run(out: &Path) -> (PathBuf, String) {
         "ctg_min=2",
         "ctg_max=4",
     ] {
-        args.extend(["--set", set]);
+        args.extend(["--set".to_string(), set.to_string()]);
     }
+    args
+}
+
+/// A tiny darkroom EPPO run (2 updates) pretrained on budgets [2, 4];
+/// returns its run folder and what it printed.
+fn tiny_eppo_run(out: &Path) -> (PathBuf, String) {
+    let args = tiny_eppo_args(out);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
     let stdout = succeeded(&icrl(&args));
     let run = std::fs::read_dir(out)
         .unwrap()
@@ -179,31 +183,7 @@ fn tiny_eppo_run(out: &Path) -> (PathBuf, String) {
 fn a_closed_stdout_ends_a_run_quietly_after_its_checkpoint() {
     use std::os::unix::process::ExitStatusExt;
     let dir = tmp("closed-stdout");
-    let mut args: Vec<String> = ["pretrain", "--env", "darkroom", "--out", &s(&dir)]
-        .map(String::from)
-        .to_vec();
-    for set in [
-        "max_episode_steps=6",
-        "k_min=2",
-        "k_max=2",
-        "n_envs=2",
-        "batch_size=2",
-        "replay_capacity=1000",
-        "encoder_hidden=16",
-        "head_hidden=16",
-        "model.d_model=16",
-        "model.n_heads=2",
-        "model.n_layers=1",
-        "model.d_ff=32",
-        "model.max_len=12",
-        "total_updates=2",
-        "updates_per_round=2",
-        "learning_starts=0",
-        "checkpoint_every=2",
-        "torch_threads=1",
-    ] {
-        args.extend(["--set".to_string(), set.to_string()]);
-    }
+    let args = tiny_eppo_args(&dir);
     let mut child = Command::new(env!("CARGO_BIN_EXE_icrl"))
         .args(&args)
         .stdout(std::process::Stdio::piped())
