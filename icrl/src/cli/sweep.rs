@@ -776,10 +776,17 @@ fn table(grid: &SweepGrid, rows: &BTreeMap<String, Vec<[f64; 4]>>) -> (String, S
             })
             .collect();
         let _ = write!(md, "| {label} | {} |", seeds.len());
-        let _ = write!(csv, "\"{label}\",{}", seeds.len());
+        // CSV quotes a field's quotes by doubling them (RFC 4180).
+        let _ = write!(csv, "\"{}\",{}", label.replace('"', "\"\""), seeds.len());
         for c in &cols {
-            let _ = write!(md, " {:.3} ± {:.3} |", c.mean, c.se);
-            let _ = write!(csv, ",{},{}", c.mean, c.se);
+            // One seed has no standard error: say so rather than "± 0.000".
+            if seeds.len() < 2 {
+                let _ = write!(md, " {:.3} (one seed) |", c.mean);
+                let _ = write!(csv, ",{},", c.mean);
+            } else {
+                let _ = write!(md, " {:.3} ± {:.3} |", c.mean, c.se);
+                let _ = write!(csv, ",{},{}", c.mean, c.se);
+            }
         }
         md.push('\n');
         csv.push('\n');
@@ -1005,6 +1012,34 @@ account = "proj"
         .unwrap();
         let script = slurm_script(&grid, Path::new("/bin/icrl")).unwrap();
         assert!(script.contains("#SBATCH --mem=64G\n"), "{script}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
+
+    /// The gathered table says "one seed" where a setting has no standard
+    /// error (it printed "± 0.000"), and its CSV doubles a label's quotes.
+    #[test]
+    fn a_single_seed_has_no_standard_error_and_csv_quotes_are_escaped() {
+        let dir = std::env::temp_dir().join(format!("icrl-sweep-table-{}", std::process::id()));
+        let grid = SweepGrid::load(&grid_file(
+            &dir,
+            "env = \"darkroom\"\nseeds = [0, 1]\nout = \"runs\"\n",
+        ))
+        .unwrap();
+        let rows = BTreeMap::from([
+            ("preset=\"a\"".to_string(), vec![[0.1, 0.2, 3.0, 2.0]]),
+            (
+                "lr=0.001".to_string(),
+                vec![[0.1, 0.2, 3.0, 2.0], [0.3, 0.4, 1.0, 1.0]],
+            ),
+        ]);
+        let (md, csv) = table(&grid, &rows);
+        assert!(
+            md.contains("| preset=\"a\" | 1 | 0.100 (one seed) |"),
+            "{md}"
+        );
+        assert!(!md.contains("± 0.000"), "{md}");
+        assert!(md.contains("| lr=0.001 | 2 | 0.200 ± 0.100 |"), "{md}");
+        assert!(csv.contains("\"preset=\"\"a\"\"\",1,0.1,,"), "{csv}");
         let _ = std::fs::remove_dir_all(&dir);
     }
 }
