@@ -14,6 +14,12 @@ pub enum PresetError {
     Malformed(String),
     #[error("--set {key}: no such field; fields here: {fields}")]
     NoField { key: String, fields: String },
+    #[error(
+        "--set {key}={value}: a whole number past {max}, the largest a config holds: give a \
+         smaller one",
+        max = i64::MAX
+    )]
+    TooLarge { key: String, value: String },
     #[error("preset {name}: {source}")]
     Parse {
         name: String,
@@ -86,8 +92,16 @@ pub fn apply_overrides(table: &mut toml::Table, sets: &[String]) -> Result<(), P
         let value = format!("v = {raw}")
             .parse::<toml::Table>()
             .ok()
-            .and_then(|mut t| t.remove("v"))
-            .unwrap_or_else(|| toml::Value::String(raw.to_string()));
+            .and_then(|mut t| t.remove("v"));
+        // Digits TOML could not read are a number past i64, not a string.
+        let digits = raw.trim().trim_start_matches(['-', '+']);
+        if value.is_none() && !digits.is_empty() && digits.bytes().all(|b| b.is_ascii_digit()) {
+            return Err(PresetError::TooLarge {
+                key: key.trim().to_string(),
+                value: raw.trim().to_string(),
+            });
+        }
+        let value = value.unwrap_or_else(|| toml::Value::String(raw.to_string()));
         let parts: Vec<&str> = key.trim().split('.').collect();
         let mut node = &mut *table;
         for (i, part) in parts.iter().enumerate() {
@@ -128,6 +142,25 @@ pub fn resolve<T: DeserializeOwned>(name: &str, table: toml::Table) -> Result<T,
 mod tests {
     use super::*;
     use crate::eppo::EppoConfig;
+
+    /// A whole number past i64 (trial 3: `--set seed=18446744073709551615`
+    /// was refused as a string) is refused as a number too large, naming
+    /// the key and the largest; the largest itself passes.
+    #[test]
+    fn a_whole_number_past_the_largest_is_refused_as_such() {
+        let mut t = preset_table("eppo", "darkroom", "quick").unwrap();
+        for raw in ["18446744073709551615", "-9223372036854775809"] {
+            let err = apply_overrides(&mut t, &[format!("seed={raw}")])
+                .unwrap_err()
+                .to_string();
+            assert!(
+                err.contains(&format!("seed={raw}")) && err.contains("9223372036854775807"),
+                "{err}"
+            );
+        }
+        apply_overrides(&mut t, &["seed=9223372036854775807".into()]).unwrap();
+        apply_overrides(&mut t, &["device=cuda".into()]).unwrap();
+    }
 
     #[test]
     fn every_preset_parses_and_validates() {
