@@ -19,6 +19,11 @@ fn tmp(name: &str) -> PathBuf {
     d
 }
 
+/// Makes a FIFO at `path`.
+fn mkfifo(path: &Path) {
+    assert!(Command::new("mkfifo").arg(path).status().unwrap().success());
+}
+
 fn s(p: &Path) -> String {
     p.display().to_string()
 }
@@ -69,13 +74,7 @@ fn dataset_never_replaces_what_is_not_ours() {
     refused(&dataset("/dev/null", &["--force"]), "it is a device");
     assert!(!std::fs::metadata("/dev/null").unwrap().is_file());
     let fifo = dir.join("fifo");
-    assert!(
-        Command::new("mkfifo")
-            .arg(&fifo)
-            .status()
-            .unwrap()
-            .success()
-    );
+    mkfifo(&fifo);
     refused(&dataset(&s(&fifo), &["--force"]), "it is a FIFO");
     // A checkpoint's weights.
     let ck = dir.join("run/checkpoints/step_20");
@@ -223,13 +222,7 @@ fn a_closed_stdout_ends_a_run_quietly_after_its_checkpoint() {
 fn a_fifo_where_histories_are_read_is_refused_at_once() {
     let dir = tmp("fifo-read");
     let fifo = dir.join("data.h5");
-    assert!(
-        Command::new("mkfifo")
-            .arg(&fifo)
-            .status()
-            .unwrap()
-            .success()
-    );
+    mkfifo(&fifo);
     let f = s(&fifo);
     let out = s(&dir.join("x"));
     let merged = s(&dir.join("all.h5"));

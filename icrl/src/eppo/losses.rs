@@ -170,14 +170,13 @@ fn encodings(
     tokens: &Tensor,
 ) -> Result<(Tensor, Tensor), EppoError> {
     let threads = tch::get_num_threads();
-    let target_encoding = |tokens: &Tensor| tch::no_grad(|| target.encode(tokens, false));
-    if threads < 2 || tokens.device() != Device::Cpu {
-        return Ok((net.encode(tokens, true)?, target_encoding(tokens)?));
-    }
     let beside = TargetForward {
         target,
         tokens: tokens.shallow_clone(),
     };
+    if threads < 2 || tokens.device() != Device::Cpu {
+        return Ok((net.encode(tokens, true)?, beside.run()?));
+    }
     tch::set_num_threads(1);
     let (h, ht) = std::thread::scope(|s| {
         let ht = s.spawn(move || {
