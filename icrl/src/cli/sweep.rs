@@ -437,7 +437,7 @@ fn slurm_mem(text: &str) -> bool {
 }
 
 /// Updates per second of the quick presets, measured on one CPU core shared
-/// with other jobs (README): the default speed for the time limit.
+/// with other jobs (USAGE.md): the default speed for the time limit.
 fn measured_updates_per_second(method: &str, env: &str, preset: &str) -> Option<f64> {
     match (method, env, preset) {
         // 7000 updates in about 90 minutes.
