@@ -147,8 +147,8 @@ pub fn check(checkpoint: &Path, env: EnvName) -> Result<String, EvalCmdError> {
         record: None,
         torch_seed: Some(SEED),
         orientation: Orientation::Edge,
-        search_cell: crate::eval::search_cell(env),
-        repeat_radius: crate::eval::repeat_radius(env),
+        search_cell: crate::signals::search_cell(env),
+        repeat_radius: crate::signals::repeat_radius(env),
     };
     let spawn = spawn_config(env);
     let trained = evaluate(agent.agent.as_mut(), &make, &spawn, &cfg, &mut |_| {})?;

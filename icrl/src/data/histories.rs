@@ -847,7 +847,7 @@ pub fn read_histories(
     let f = hdf5::File::open(path).map_err(|e| err(Problem::Unreadable(e.to_string())))?;
     let malformed = |what: String| err(Problem::Malformed(what));
     // A merged file: its shards are checked before libhdf5 reads through to them.
-    crate::data::merge::verify_shards(&f, path)?;
+    verify_shards(&f, path)?;
 
     let info = read_info(&f, path, expected_env)?;
 
@@ -1084,6 +1084,55 @@ fn read_info(
         )));
     }
     Ok(info)
+}
+
+/// Attribute of a merged file listing its shards.
+pub(crate) const SHARDS_ATTR: &str = "shards";
+
+/// One shard as a merged file records it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub(crate) struct ShardRecord {
+    /// Path relative to the merged file's folder.
+    pub(crate) file: String,
+    /// The shard's SHA-256 (of the bytes after its user block) at merging.
+    pub(crate) sha256: String,
+}
+
+/// For a merged file (one with a `shards` attribute): checks that every
+/// shard is there, passes its own checksum, and is the file that was
+/// merged (its SHA-256 is the recorded one). Other files pass unchecked.
+fn verify_shards(f: &hdf5::File, path: &Path) -> Result<(), HistoryError> {
+    let Ok(attr) = f.attr(SHARDS_ATTR) else {
+        return Ok(());
+    };
+    let damaged = |what: String| HistoryError::new(path, Problem::Damaged(what));
+    let text = attr
+        .read_scalar::<hdf5::types::VarLenUnicode>()
+        .map_err(|e| damaged(format!("attribute {SHARDS_ATTR}: {e}")))?;
+    let records: Vec<ShardRecord> = serde_json::from_str(text.as_str())
+        .map_err(|e| damaged(format!("attribute {SHARDS_ATTR}: {e}")))?;
+    let base = path.parent().unwrap_or(Path::new("."));
+    for r in &records {
+        let shard = base.join(&r.file);
+        if !shard.is_file() {
+            return Err(damaged(format!(
+                "its shard {} is missing; keep the merged file and its shards together",
+                shard.display()
+            )));
+        }
+        let got = verify_seal(&shard)
+            .map_err(|p| HistoryError::new(&shard, p))?
+            .ok_or_else(|| damaged(format!("its shard {} has no checksum", shard.display())))?;
+        if got != r.sha256 {
+            return Err(damaged(format!(
+                "its shard {} is not the file that was merged (SHA-256 {got}, merged {}): it was \
+                 made again or replaced; merge again with `icrl dataset merge`",
+                shard.display(),
+                r.sha256
+            )));
+        }
+    }
+    Ok(())
 }
 
 #[cfg(test)]

@@ -23,23 +23,11 @@
 use std::path::{Path, PathBuf};
 
 use safety_envs::output::{self, Existing};
-use serde::{Deserialize, Serialize};
 
 use crate::data::histories::{
-    self, DatasetInfo, HistoryError, Problem, USER_BLOCK, read_histories, verify_seal,
+    self, DatasetInfo, HistoryError, Problem, SHARDS_ATTR, ShardRecord, USER_BLOCK,
+    read_histories, verify_seal,
 };
-
-/// Attribute of a merged file listing its shards.
-const SHARDS_ATTR: &str = "shards";
-
-/// One shard as a merged file records it.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-struct ShardRecord {
-    /// Path relative to the merged file's folder.
-    file: String,
-    /// The shard's SHA-256 (of the bytes after its user block) at merging.
-    sha256: String,
-}
 
 /// What `merge` wrote.
 #[derive(Clone, Debug)]
@@ -339,43 +327,6 @@ fn write_views(
         serde_json::to_string(&records).map_err(|e| hdf5::Error::from(e.to_string().as_str()))?;
     histories::put_text(&f, SHARDS_ATTR, &json)?;
     f.flush()
-}
-
-/// For a merged file (one with a `shards` attribute): checks that every
-/// shard is there, passes its own checksum, and is the file that was
-/// merged (its SHA-256 is the recorded one). Other files pass unchecked.
-pub(crate) fn verify_shards(f: &hdf5::File, path: &Path) -> Result<(), HistoryError> {
-    let Ok(attr) = f.attr(SHARDS_ATTR) else {
-        return Ok(());
-    };
-    let damaged = |what: String| HistoryError::new(path, Problem::Damaged(what));
-    let text = attr
-        .read_scalar::<hdf5::types::VarLenUnicode>()
-        .map_err(|e| damaged(format!("attribute {SHARDS_ATTR}: {e}")))?;
-    let records: Vec<ShardRecord> = serde_json::from_str(text.as_str())
-        .map_err(|e| damaged(format!("attribute {SHARDS_ATTR}: {e}")))?;
-    let base = path.parent().unwrap_or(Path::new("."));
-    for r in &records {
-        let shard = base.join(&r.file);
-        if !shard.is_file() {
-            return Err(damaged(format!(
-                "its shard {} is missing; keep the merged file and its shards together",
-                shard.display()
-            )));
-        }
-        let got = verify_seal(&shard)
-            .map_err(|p| HistoryError::new(&shard, p))?
-            .ok_or_else(|| damaged(format!("its shard {} has no checksum", shard.display())))?;
-        if got != r.sha256 {
-            return Err(damaged(format!(
-                "its shard {} is not the file that was merged (SHA-256 {got}, merged {}): it was \
-                 made again or replaced; merge again with `icrl dataset merge`",
-                shard.display(),
-                r.sha256
-            )));
-        }
-    }
-    Ok(())
 }
 
 #[cfg(test)]

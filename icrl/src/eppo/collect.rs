@@ -40,7 +40,7 @@ pub struct RoundStats {
     /// Cells first entered per episode after the first, over the episodes
     /// that start with the goal not yet found ([`new_cells_while_searching`]).
     pub search_new_cells: f64,
-    /// Mean cost per episode paid again ([`CostMemory`](super::replay::CostMemory), the evaluation's
+    /// Mean cost per episode paid again ([`CostMemory`](crate::signals::CostMemory), the evaluation's
     /// `repeat_cost`): what the context could have spared.
     pub repeat_cost: f64,
     /// The share of trajectories whose last episode ended over its budget:
@@ -456,7 +456,7 @@ impl Collector<'_> {
             }
         }
         *self.env_steps += steps;
-        let radii = (self.cfg.novelty_cell, crate::eval::repeat_radius(self.env));
+        let radii = (self.cfg.novelty_cell, crate::signals::repeat_radius(self.env));
         let mut stats = round_stats(&trajs, steps, self.spec, radii);
         if self.cfg.goal_in_observation {
             stats.goal_slots = GoalSlotStats::of(&trajs, &hidden);

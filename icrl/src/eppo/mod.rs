@@ -173,7 +173,6 @@ pub use losses::{UpdateStats, lambda_update};
 pub use multiplier::{ConstraintStart, Gains, Multiplier};
 pub use net::{EppoNet, NetSpec};
 pub use relabel::{pick_goal, relabel};
-pub(crate) use replay::{CostMemory, position_cell};
 pub use replay::{Replay, Trajectory};
 pub use timing::{PhaseTimes, thread_cpu_seconds};
 

@@ -14,6 +14,7 @@ use safety_envs::{GoalRule, GoalShown};
 
 use super::config::{EppoConfig, NoveltyBudget, ViolationSignal};
 use super::net::NetSpec;
+use crate::signals::{CostMemory, position_cell};
 use crate::tokens::{self, StepToken};
 
 /// K episodes in one task with one budget, as collected.
@@ -409,53 +410,6 @@ fn dense_reward(t: &Trajectory, step: usize, spec: &NetSpec, cfg: &EppoConfig) -
     let after = [t.next_obs[step * od], t.next_obs[step * od + 1]];
     let progress = GoalRule::distance(before, t.goal) - GoalRule::distance(after, t.goal);
     cfg.dense_reward_coef as f32 * progress
-}
-
-/// The cell (side `side`) of the position at observation indices 0 and 1,
-/// the one the novelty bonus and the search metrics count.
-pub(crate) fn position_cell(obs: &[f32], side: f64) -> (i64, i64) {
-    let at = |x: f32| (f64::from(x) / side).round() as i64;
-    (at(obs[0]), at(obs[1]))
-}
-
-/// Where a trajectory has paid costs, episode by episode, to tell a repeated
-/// cost (paid within `radius` of a cost paid in an earlier episode) from a
-/// first one: in-context safety is not paying twice for one hazard. Shared by
-/// the repeat price ([`EppoConfig::repeat_cost_radius`]) and the evaluation's
-/// repeated-cost metric.
-#[derive(Clone, Debug)]
-pub(crate) struct CostMemory {
-    radius: f32,
-    earlier: Vec<[f32; 2]>,
-    this_episode: Vec<[f32; 2]>,
-}
-
-impl CostMemory {
-    pub(crate) fn new(radius: f64) -> Self {
-        Self {
-            radius: radius as f32,
-            earlier: Vec::new(),
-            this_episode: Vec::new(),
-        }
-    }
-
-    /// Records a cost paid on arriving at `arrived` (position at indices 0
-    /// and 1); true when it repeats one of an earlier episode.
-    pub(crate) fn paid(&mut self, arrived: &[f32]) -> bool {
-        let at = [arrived[0], arrived[1]];
-        let r2 = self.radius * self.radius;
-        let repeated = self
-            .earlier
-            .iter()
-            .any(|p| (p[0] - at[0]).powi(2) + (p[1] - at[1]).powi(2) < r2);
-        self.this_episode.push(at);
-        repeated
-    }
-
-    /// The episode ended: its costs become earlier ones.
-    pub(crate) fn end_episode(&mut self) {
-        self.earlier.append(&mut self.this_episode);
-    }
 }
 
 /// For each step of `t`, true where it pays a repeated cost ([`CostMemory`]

@@ -27,7 +27,7 @@ use serde::Serialize;
 use super::error::EvalCmdError;
 use super::load::{ContextLimit, LoadedAgent};
 use super::render::render;
-use super::report::{EvalReport, Method};
+use crate::report::{EvalReport, Method};
 use crate::agent::{AgentError, Conditioning};
 use crate::eval::{
     self, BudgetRange, EvalConfig, EvalError, Summary, grid, sample_budgets, targets_sweep,
@@ -336,8 +336,8 @@ fn run_one(
         } else {
             Orientation::Edge
         },
-        search_cell: super::search_cell(env),
-        repeat_radius: super::repeat_radius(env),
+        search_cell: crate::signals::search_cell(env),
+        repeat_radius: crate::signals::repeat_radius(env),
     };
     cfg.validate()?;
 

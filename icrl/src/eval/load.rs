@@ -16,7 +16,7 @@ use serde::Serialize;
 
 use super::RandomAgent;
 use super::error::EvalCmdError;
-use super::report::Method;
+use crate::report::Method;
 use crate::ad::AdAgent;
 use crate::agent::InContextAgent;
 use crate::checkpoint::{MANIFEST, RunDir, read_manifest};

@@ -25,12 +25,12 @@
 //!   action, reward and cost of the previous episode (zeros only at the very
 //!   first step), with `episode_start` set: the agent restarts its CTG there.
 //! - The search itself, beside its outcome (discovery, revisit, found by
-//!   k): the cells (side [`search_cell`]) a trajectory first enters in each
+//!   k): the cells (side [`search_cell`](crate::signals::search_cell)) a trajectory first enters in each
 //!   episode, averaged over the conditions with no earlier success
 //!   (`search_new_cells`). An agent that drives one route in every episode
 //!   scores near 0 after the first, however many goals it misses.
 //! - In-context safety: the cost of each episode paid again, within
-//!   [`repeat_radius`] of where the trajectory paid a cost in an earlier
+//!   [`repeat_radius`](crate::signals::repeat_radius) of where the trajectory paid a cost in an earlier
 //!   episode (`repeat_cost`). With the hazards unseen, a first cost is the
 //!   price of search; a repeat is a lesson the context held and the agent
 //!   did not use.
@@ -42,7 +42,6 @@ pub mod command;
 pub mod error;
 pub mod load;
 mod render;
-pub mod report;
 
 use std::collections::HashSet;
 
@@ -50,16 +49,16 @@ use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use safety_envs::vec_env::{VecAction, VecEnv, episode_seed};
 use safety_envs::{
-    CmdpEnv, EnvError, EnvName, Orientation, Space, SpawnConfig, StepOutcome, Task, sample_task,
+    CmdpEnv, EnvError, Orientation, Space, SpawnConfig, StepOutcome, Task, sample_task,
 };
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
 use crate::agent::{Actions, AgentError, Conditioning, InContextAgent, StepInput};
-use crate::eppo::{CostMemory, position_cell};
+use crate::signals::{CostMemory, position_cell};
 use crate::task_seeds::{self, PretrainTasks, SeedError};
 
-pub use report::{
+pub use crate::report::{
     ConditionRecord, ConditionStats, EpisodeStats, EvalResult, HeldOut, RecordedEpisode, Recording,
     Summary, TaskRecord, Trend,
 };
@@ -126,32 +125,11 @@ pub struct EvalConfig {
     /// unseen seeds) is a diagnostic only.
     pub orientation: Orientation,
     /// Side of the cells that `new_cells` counts, in the units of the
-    /// position at observation indices 0 and 1 ([`search_cell`]).
+    /// position at observation indices 0 and 1 ([`search_cell`](crate::signals::search_cell)).
     pub search_cell: f64,
     /// How near an earlier cost a cost counts as repeated, in the same
-    /// units ([`repeat_radius`]).
+    /// units ([`repeat_radius`](crate::signals::repeat_radius)).
     pub repeat_radius: f64,
-}
-
-/// The distance within which the `repeat_cost` metric counts a cost as
-/// paid again in `env`: a hazard's diameter on the robots (two arrivals in
-/// one hazard lie within it; hazards sit 0.75 m apart on the task grid, so
-/// arrivals in two of them rarely do: 1 of 1479 costly steps in the check
-/// of results/eppo_point_ladder), one SafeDarkRoom cell.
-pub fn repeat_radius(env: EnvName) -> f64 {
-    match env {
-        EnvName::DarkRoom => 0.5,
-        EnvName::Point | EnvName::Car => 2.0 * safety_envs::nav::NavConfig::default().hazard_radius,
-    }
-}
-
-/// The cell side the search metrics use in `env`: one SafeDarkRoom cell, the
-/// spacing of the robots' task grid (0.75 m).
-pub fn search_cell(env: EnvName) -> f64 {
-    match env {
-        EnvName::DarkRoom => 1.0,
-        EnvName::Point | EnvName::Car => safety_envs::nav::NavConfig::default().spacing(),
-    }
 }
 
 impl EvalConfig {

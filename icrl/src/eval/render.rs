@@ -8,7 +8,7 @@ use std::path::Path;
 use safety_envs::{CmdpEnv, EnvName, Orientation, sample_task, spawn_config};
 
 use super::error::EvalCmdError;
-use super::report::{EvalReport, Recording};
+use crate::report::{EvalReport, Recording};
 use crate::plots;
 
 /// The animation of the recorded trajectory.

@@ -7,7 +7,7 @@ use plotters::prelude::*;
 use safety_envs::output::{self, Existing};
 
 use super::{PlotError, ensure_font};
-use crate::eval::{Recording, TaskRecord};
+use crate::report::{Recording, TaskRecord};
 
 /// A GIF of one recorded SafeDarkRoom trajectory: the grid with the obstacles
 /// (red; darker once touched in this trajectory), the goal (green), the agent

@@ -30,7 +30,7 @@ use plotters::style::FontStyle;
 use safety_envs::output::{self, Existing};
 use thiserror::Error;
 
-use crate::eval::Summary;
+use crate::report::Summary;
 
 pub use animation::{ArenaGeometry, darkroom_animation, nav_animation, nav_render_animation};
 pub use figures::{figure1, figure2};

@@ -106,12 +106,12 @@ pub struct EvalResult {
     pub lengths: Vec<Vec<Vec<u32>>>,
     /// The episode ended at the goal (terminated), same layout.
     pub reached_goal: Vec<Vec<Vec<bool>>>,
-    /// Cells (side [`EvalConfig::search_cell`](super::EvalConfig)) the
+    /// Cells (side [`EvalConfig::search_cell`](crate::eval::EvalConfig)) the
     /// trajectory first entered in the episode, same layout; empty in older
     /// result files.
     #[serde(default)]
     pub new_cells: Vec<Vec<Vec<u32>>>,
-    /// Cost paid in the episode within [`EvalConfig::repeat_radius`](super::EvalConfig)
+    /// Cost paid in the episode within [`EvalConfig::repeat_radius`](crate::eval::EvalConfig)
     /// of where the trajectory paid a cost in an earlier episode, same
     /// layout; empty in older result files.
     #[serde(default)]
