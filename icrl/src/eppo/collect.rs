@@ -55,6 +55,20 @@ pub struct RoundStats {
     pub goal_slots: GoalSlotStats,
 }
 
+impl RoundStats {
+    /// The revisit rate that says the in-context skill exists: with goal
+    /// slots (`goal_in_observation`), that of the trajectories that hid
+    /// their goal, since driving back to a shown goal needs no context (on
+    /// Car the shown ones alone pass 0.7 before the hidden ones start).
+    pub fn skill_revisit_rate(&self, goal_slots: bool) -> f64 {
+        if goal_slots {
+            self.goal_slots.hidden_revisit_rate
+        } else {
+            self.revisit_rate
+        }
+    }
+}
+
 /// The round's trajectories that hid their goal against those that showed it.
 #[derive(Clone, Copy, Debug)]
 pub struct GoalSlotStats {
@@ -456,7 +470,10 @@ impl Collector<'_> {
             }
         }
         *self.env_steps += steps;
-        let radii = (self.cfg.novelty_cell, crate::signals::repeat_radius(self.env));
+        let radii = (
+            self.cfg.novelty_cell,
+            crate::signals::repeat_radius(self.env),
+        );
         let mut stats = round_stats(&trajs, steps, self.spec, radii);
         if self.cfg.goal_in_observation {
             stats.goal_slots = GoalSlotStats::of(&trajs, &hidden);

@@ -945,13 +945,13 @@ impl EppoConfig {
         }
         if self.hazards_in_observation && self.goal_in_observation {
             return bad(
-                "hazards_in_observation and goal_in_observation both append slots to the                  observation: set one of them to false"
+                "hazards_in_observation and goal_in_observation both append slots to the observation: set one of them to false"
                     .to_string(),
             );
         }
         if self.hazard_hidden_share > 0.0 && !self.hazards_in_observation {
             return bad(
-                "hazard_hidden_share > 0 hides the hazard map of hazards_in_observation in some                  trajectories: set hazards_in_observation = true, or hazard_hidden_share = 0"
+                "hazard_hidden_share > 0 hides the hazard map of hazards_in_observation in some trajectories: set hazards_in_observation = true, or hazard_hidden_share = 0"
                     .to_string(),
             );
         }

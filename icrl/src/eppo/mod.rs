@@ -457,7 +457,7 @@ impl Learner {
     pub fn observe_round(&mut self, round: &RoundStats) {
         if let Some(threshold) = self.cfg.constraint_after_revisit {
             self.constraint_start.observe(
-                round.revisit_rate,
+                round.skill_revisit_rate(self.cfg.goal_in_observation),
                 self.updates,
                 self.cfg.lambda_warmup_updates,
                 threshold,

@@ -87,6 +87,33 @@ fn a_measured_constraint_start_waits_for_the_warmup_and_the_revisit_rate() {
 }
 
 #[test]
+fn with_goal_slots_the_start_waits_for_the_hidden_trajectories_revisits() {
+    let mut cfg = tiny_point();
+    cfg.goal_in_observation = true;
+    cfg.goal_hidden_share = 0.5;
+    cfg.lambda_warmup_updates = 0;
+    cfg.constraint_after_revisit = Some(0.5);
+    cfg.constraint_revisit_rounds = 1;
+    cfg.validate().unwrap();
+    let mut learner = Learner::new(cfg, EnvName::Point).unwrap();
+    let round = |all: f64, hidden: f64| RoundStats {
+        revisit_rate: all,
+        goal_slots: GoalSlotStats {
+            hidden_revisit_rate: hidden,
+            ..Default::default()
+        },
+        ..Default::default()
+    };
+    // Shown goals driven back to do not start it, nor does a round with no
+    // hidden trajectory that found its goal (NaN: not counted).
+    learner.observe_round(&round(0.9, 0.2));
+    learner.observe_round(&round(0.9, f64::NAN));
+    assert!(!learner.constrained());
+    learner.observe_round(&round(0.1, 0.6));
+    assert!(learner.constrained(), "the hidden ones' revisits start it");
+}
+
+#[test]
 fn the_multiplier_waits_for_the_measured_start_and_the_checkpoint_keeps_it() {
     let mut cfg = tiny();
     cfg.lambda_init = 0.5;

@@ -14,7 +14,7 @@ use tch::{Device, Kind, Tensor};
 use safety_envs::{EnvName, Orientation, VecEnv, sample_task, spawn_config};
 
 use super::collect::{
-    Acting, EnvActions, Policy, last_over_budget, new_cells_while_searching,
+    Acting, EnvActions, GoalSlotStats, Policy, last_over_budget, new_cells_while_searching,
     repeat_cost_per_episode, sample_actions,
 };
 use super::losses::{
