@@ -134,6 +134,46 @@ pub fn record_forked_max_len(step: &Path, max_len: i64) -> Result<(), Checkpoint
     fs::rename(&tmp, &path).map_err(io(&path))
 }
 
+/// Removes `file` from the checkpoint folder `dir` and from its manifest,
+/// after verifying the checkpoint: how a finished run sheds what only a
+/// resume needs (the replay). The new manifest is published before the file
+/// goes, so a stop between the two leaves a checkpoint that loads. Returns
+/// the bytes freed; `None` when the manifest does not list `file`.
+pub fn drop_file(dir: &Path, file: &str) -> Result<Option<u64>, CheckpointError> {
+    let mut manifest = read_manifest(dir)?;
+    let Some(size) = manifest.files.remove(file) else {
+        return Ok(None);
+    };
+    manifest.sha256.remove(file);
+    let path = dir.join(MANIFEST);
+    // Replaced, not written through: a fork's manifest is a hard link.
+    let tmp = dir.join(format!(".{MANIFEST}.tmp"));
+    write_manifest(&tmp, &manifest)?;
+    fs::rename(&tmp, &path).map_err(io(&path))?;
+    let dropped = dir.join(file);
+    fs::remove_file(&dropped).map_err(io(&dropped))?;
+    Ok(Some(size))
+}
+
+/// The checkpoint folders at `path`: `path` itself when it holds a
+/// manifest, else a run folder's `checkpoints/step_N` (and `checkpoints/`
+/// itself, where an early run wrote its only checkpoint), by N.
+pub fn checkpoint_folders(path: &Path) -> Result<Vec<PathBuf>, CheckpointError> {
+    if path.join(MANIFEST).is_file() {
+        return Ok(vec![path.to_path_buf()]);
+    }
+    let run = RunDir::open(path)?;
+    let flat = run.path.join("checkpoints");
+    let mut folders: Vec<PathBuf> = flat
+        .join(MANIFEST)
+        .is_file()
+        .then_some(flat)
+        .into_iter()
+        .collect();
+    folders.extend(run.checkpoints()?.into_iter().map(|(_, p)| p));
+    Ok(folders)
+}
+
 /// Writes `manifest` to `path` and syncs it, so that a rename that
 /// publishes it never publishes an empty file.
 fn write_manifest(path: &Path, manifest: &Manifest) -> Result<(), CheckpointError> {
@@ -1279,6 +1319,49 @@ mod tests {
         json["env"] = "darkroom".into();
         fs::write(&path, json.to_string()).unwrap();
         assert_eq!(read_manifest(&dir).unwrap().physics_steps_per_action, None);
+        fs::remove_dir_all(&root).unwrap();
+    }
+
+    #[test]
+    fn a_dropped_file_leaves_a_checkpoint_that_verifies_and_a_damaged_one_is_left_alone() {
+        let root = std::env::temp_dir().join(format!("icrl-ckpt-drop-{}", std::process::id()));
+        let run = RunDir::create(&root, "darkroom", "test", 3).unwrap();
+        let write = |updates| {
+            run.write_checkpoint(
+                updates,
+                "test",
+                "darkroom",
+                None,
+                serde_json::json!({}),
+                keep(0),
+                |dir| {
+                    fs::write(dir.join("model.safetensors"), vec![7u8; 256]).map_err(io(dir))?;
+                    fs::write(dir.join("replay.safetensors"), vec![1u8; 1000]).map_err(io(dir))
+                },
+            )
+            .unwrap()
+        };
+        let (first, second) = (write(1), write(2));
+        assert_eq!(
+            checkpoint_folders(&run.path).unwrap(),
+            vec![first.clone(), second.clone()]
+        );
+        assert_eq!(checkpoint_folders(&second).unwrap(), vec![second.clone()]);
+        assert_eq!(drop_file(&first, "replay.safetensors").unwrap(), Some(1000));
+        assert!(!first.join("replay.safetensors").exists());
+        let m = read_manifest(&first).unwrap();
+        assert!(!m.files.contains_key("replay.safetensors"));
+        assert!(!m.sha256.contains_key("replay.safetensors"));
+        assert_eq!(m.files["model.safetensors"], 256, "the rest is kept");
+        assert_eq!(drop_file(&first, "replay.safetensors").unwrap(), None);
+        // A damaged checkpoint is refused before anything is removed.
+        let mut bytes = fs::read(second.join("model.safetensors")).unwrap();
+        bytes[0] ^= 0xff;
+        fs::write(second.join("model.safetensors"), &bytes).unwrap();
+        let err = drop_file(&second, "replay.safetensors").unwrap_err();
+        assert!(err.to_string().contains("SHA-256"), "{err}");
+        assert!(second.join("replay.safetensors").exists());
+        assert!(read_manifest(&second).is_err(), "its manifest is as it was");
         fs::remove_dir_all(&root).unwrap();
     }
 

@@ -52,6 +52,13 @@ enum Command {
     Eval(icrl_eval::EvalArgs),
     /// Seeds and settings as a Slurm job array (--emit slurm), then their table (--gather).
     Sweep(SweepArgs),
+    /// Remove the replay buffers from finished EPPO checkpoints, keeping them loadable: they
+    /// still evaluate and fork, and a resume refills the replay.
+    DropReplay {
+        /// Checkpoint folders (checkpoints/step_N) or run folders (all their checkpoints).
+        #[arg(required = true)]
+        paths: Vec<PathBuf>,
+    },
 }
 
 #[derive(Debug, Args)]
@@ -80,6 +87,27 @@ struct SweepArgs {
     /// Replace files written before (the script, the gathered evaluations and table).
     #[arg(long)]
     force: bool,
+}
+
+fn drop_replay(paths: &[PathBuf]) -> anyhow::Result<()> {
+    let mut freed = 0;
+    for path in paths {
+        for (checkpoint, bytes) in icrl::eppo::drop_replay(path)? {
+            match bytes {
+                Some(b) => {
+                    freed += b;
+                    println!(
+                        "{}: replay removed ({:.1} MB)",
+                        checkpoint.display(),
+                        b as f64 / 1e6
+                    );
+                }
+                None => println!("{}: holds no replay", checkpoint.display()),
+            }
+        }
+    }
+    println!("freed {:.1} MB", freed as f64 / 1e6);
+    Ok(())
 }
 
 fn sweep(args: SweepArgs) -> anyhow::Result<()> {
@@ -566,6 +594,7 @@ fn main() -> ExitCode {
         Command::Dataset(args) => dataset(args),
         Command::Eval(args) => icrl_eval::eval(args),
         Command::Sweep(args) => sweep(args),
+        Command::DropReplay { paths } => drop_replay(&paths),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

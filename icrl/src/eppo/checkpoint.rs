@@ -196,6 +196,20 @@ impl Learner {
     }
 }
 
+/// Removes the replay from every checkpoint at `path` (a checkpoint folder
+/// or a run folder), rewriting each manifest: the checkpoint still loads,
+/// evaluates and forks, and a resume refills its replay. Returns each
+/// checkpoint with the bytes freed (`None`: it held no replay).
+pub fn drop_replay(path: &Path) -> Result<Vec<(PathBuf, Option<u64>)>, CheckpointError> {
+    crate::checkpoint::checkpoint_folders(path)?
+        .into_iter()
+        .map(|dir| {
+            let freed = crate::checkpoint::drop_file(&dir, REPLAY_FILE)?;
+            Ok((dir, freed))
+        })
+        .collect()
+}
+
 /// The replay buffer's file in a checkpoint folder.
 pub(super) const REPLAY_FILE: &str = "replay.safetensors";
 

@@ -163,7 +163,7 @@ use safety_envs::{
 };
 
 pub use agent::EppoAgent;
-pub use checkpoint::recorded_pretrain_tasks;
+pub use checkpoint::{drop_replay, recorded_pretrain_tasks};
 pub use collect::{RoundStats, search_rates};
 pub use config::{
     EppoConfig, EppoError, Exploration, NoveltyBudget, PenaltyForm, PriceChange, ViolationSignal,

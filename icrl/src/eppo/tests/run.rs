@@ -55,6 +55,36 @@ fn a_resumed_learner_samples_the_saved_replay_and_updates_as_the_uninterrupted_o
     }
 }
 
+/// `drop_replay` sheds a finished run's replays: each checkpoint still
+/// verifies and resumes, with its weights, counters and an empty replay.
+#[test]
+fn a_checkpoint_without_its_dropped_replay_resumes_with_the_same_weights() {
+    let cfg = tiny();
+    let (mut learner, mut venv) = tiny_learner(cfg.seed);
+    learner.collect(&mut venv).unwrap();
+    learner.update().unwrap();
+    let out = std::env::temp_dir().join(format!("icrl-eppo-drop-{}", std::process::id()));
+    let run = crate::checkpoint::RunDir::create(&out, "darkroom", "eppo", cfg.seed).unwrap();
+    let saved = learner.save_checkpoint(&run).unwrap();
+    let dropped = drop_replay(&run.path).unwrap();
+    assert_eq!(dropped.len(), 1);
+    assert_eq!(dropped[0].0, saved);
+    assert!(dropped[0].1.is_some_and(|bytes| bytes > 0));
+    assert!(!saved.join(super::checkpoint::REPLAY_FILE).exists());
+    let resumed = Learner::resume(cfg, EnvName::DarkRoom, &saved).unwrap();
+    assert_eq!(resumed.replay.len(), 0, "the replay refills");
+    assert_eq!(resumed.updates, learner.updates);
+    let weights = |l: &Learner| {
+        l.vs.variables()
+            .into_iter()
+            .map(|(name, t)| (name, Vec::<f32>::try_from(t.flatten(0, -1)).unwrap()))
+            .collect::<std::collections::BTreeMap<_, _>>()
+    };
+    assert_eq!(weights(&resumed), weights(&learner));
+    assert_eq!(drop_replay(&saved).unwrap(), vec![(saved.clone(), None)]);
+    std::fs::remove_dir_all(&out).unwrap();
+}
+
 #[test]
 fn acting_through_the_cache_matches_the_full_forward() {
     let (mut learner, mut venv) = tiny_learner(3);
