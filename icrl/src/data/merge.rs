@@ -25,8 +25,8 @@ use std::path::{Path, PathBuf};
 use safety_envs::output::{self, Existing};
 
 use crate::data::histories::{
-    self, DatasetInfo, HistoryError, Problem, SHARDS_ATTR, ShardRecord, USER_BLOCK,
-    read_histories, verify_seal,
+    self, DatasetInfo, HistoryError, Problem, SHARDS_ATTR, ShardRecord, USER_BLOCK, read_histories,
+    verify_seal,
 };
 
 /// What `merge` wrote.

@@ -16,12 +16,12 @@ use serde::Serialize;
 
 use super::RandomAgent;
 use super::error::EvalCmdError;
-use crate::report::Method;
 use crate::ad::AdAgent;
 use crate::agent::InContextAgent;
 use crate::checkpoint::{MANIFEST, RunDir, read_manifest};
 use crate::eppo::EppoAgent;
 use crate::eval::{BudgetRange, shared_parameters};
+use crate::report::Method;
 use crate::task_seeds::PretrainTasks;
 
 /// A pretrained (or random) agent ready to evaluate, with what its

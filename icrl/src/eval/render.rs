@@ -8,8 +8,8 @@ use std::path::Path;
 use safety_envs::{CmdpEnv, EnvName, Orientation, sample_task, spawn_config};
 
 use super::error::EvalCmdError;
-use crate::report::{EvalReport, Recording};
 use crate::plots;
+use crate::report::{EvalReport, Recording};
 
 /// The animation of the recorded trajectory.
 pub(super) fn render(
