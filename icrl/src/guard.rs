@@ -4,6 +4,8 @@
 //!   range, the range named in the error (`lr = NaN: must be a finite number
 //!   in (0, inf)`);
 //! - [`check_counts`]: counts that must be at least 1;
+//! - [`regular_file`]: an input that is not a regular file (a FIFO would
+//!   block its reader), refused before it is opened;
 //! - [`non_finite_variable`]: the first weight of a `VarStore` holding NaN or
 //!   infinity (training refuses to go on, evaluation refuses to load);
 //! - [`MemoryEstimate`]: what a configuration will allocate (parameters, Adam
@@ -117,6 +119,31 @@ pub fn check_counts(items: &[(&str, i128)]) -> Result<(), String> {
         }
     }
     Ok(())
+}
+
+/// Refuses an input that exists but is not a regular file, before anything
+/// opens it: opening a FIFO blocks until a writer comes, where no stop
+/// signal ends the wait, and a device, socket or folder holds nothing to
+/// read. The error says what it is (`it is a FIFO, not a regular file`);
+/// a path that does not exist passes (its reader names that).
+pub fn regular_file(path: &std::path::Path) -> Result<(), String> {
+    use std::os::unix::fs::FileTypeExt;
+    let Ok(meta) = std::fs::metadata(path) else {
+        return Ok(());
+    };
+    let kind = meta.file_type();
+    let what = if kind.is_file() {
+        return Ok(());
+    } else if kind.is_fifo() {
+        "a FIFO"
+    } else if kind.is_dir() {
+        "a folder"
+    } else if kind.is_socket() {
+        "a socket"
+    } else {
+        "a device"
+    };
+    Err(format!("it is {what}, not a regular file"))
 }
 
 /// The name of the first variable of `vs` (in name order) holding NaN or

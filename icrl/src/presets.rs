@@ -58,22 +58,53 @@ const PRESETS: &[(&str, &str)] = &[
         "eppo-car-quick",
         include_str!("../presets/eppo-car-quick.toml"),
     ),
+    (
+        "ad-darkroom-table2",
+        include_str!("../presets/ad-darkroom-table2.toml"),
+    ),
+    (
+        "ad-point-table2",
+        include_str!("../presets/ad-point-table2.toml"),
+    ),
+    (
+        "ad-car-table2",
+        include_str!("../presets/ad-car-table2.toml"),
+    ),
+    (
+        "ad-darkroom-quick",
+        include_str!("../presets/ad-darkroom-quick.toml"),
+    ),
+    (
+        "ad-point-quick",
+        include_str!("../presets/ad-point-quick.toml"),
+    ),
+    ("ad-car-quick", include_str!("../presets/ad-car-quick.toml")),
 ];
 
-/// The preset `{method}-{env}-{preset}` as a TOML table.
+/// The preset `{method}-{env}-{preset}` as a TOML table, of either method.
+/// An unknown name is refused with the presets of its method.
 pub fn preset_table(method: &str, env: &str, preset: &str) -> Result<toml::Table, PresetError> {
     let name = format!("{method}-{env}-{preset}");
     let text = PRESETS
         .iter()
         .find(|(n, _)| *n == name)
         .map(|(_, t)| *t)
-        .ok_or_else(|| PresetError::Unknown {
-            name: name.clone(),
-            available: PRESETS
+        .ok_or_else(|| {
+            let names: Vec<&str> = PRESETS.iter().map(|(n, _)| *n).collect();
+            let of_method: Vec<&str> = names
                 .iter()
-                .map(|(n, _)| *n)
-                .collect::<Vec<_>>()
+                .copied()
+                .filter(|n| n.starts_with(&format!("{method}-")))
+                .collect();
+            PresetError::Unknown {
+                name: name.clone(),
+                available: if of_method.is_empty() {
+                    names
+                } else {
+                    of_method
+                }
                 .join(", "),
+            }
         })?;
     text.parse::<toml::Table>()
         .map_err(|source| PresetError::Parse { name, source })
@@ -171,7 +202,13 @@ mod tests {
                 parts.next().unwrap(),
                 parts.next().unwrap(),
             );
-            let cfg: EppoConfig = resolve(name, preset_table(m, e, p).unwrap()).unwrap();
+            let table = preset_table(m, e, p).unwrap();
+            if m == "ad" {
+                crate::ad::AdConfig::from_table(table)
+                    .unwrap_or_else(|err| panic!("{name}: {err}"));
+                continue;
+            }
+            let cfg: EppoConfig = resolve(name, table).unwrap();
             cfg.validate().unwrap_or_else(|err| panic!("{name}: {err}"));
             // The macro action, spelled out in every Point and Car preset:
             // 5 Safety-Gymnasium steps x 10 physics steps; none for DarkRoom.

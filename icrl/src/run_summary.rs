@@ -203,12 +203,16 @@ impl RecentRounds {
 }
 
 /// The command that evaluates `checkpoint` on `env` (held-out edge tasks,
-/// Figure 1, with a random policy for scale).
+/// Figure 1, with a random policy for scale). The checkpoint is named by its
+/// absolute path: `cargo xtask` runs only inside the workspace, so a path
+/// relative to where `icrl pretrain` ran (`--out runs` from another folder)
+/// would name another folder there.
 pub fn eval_command(env: EnvName, checkpoint: &Path) -> String {
+    let checkpoint = std::path::absolute(checkpoint).unwrap_or_else(|_| checkpoint.to_path_buf());
     // The random policy is evaluated beside it by default.
     format!(
         "cargo xtask eval --checkpoint {} --env {env} --out results/eval_{env}",
-        shell_word(checkpoint)
+        shell_word(&checkpoint)
     )
 }
 
@@ -344,9 +348,13 @@ mod tests {
         assert!(r.episodic_cost > 1.0, "{r:?}");
         assert!(r.episodic_return < 0.5, "{r:?}");
         let cmd = eval_command(EnvName::Car, Path::new("runs/x/checkpoints/step_9"));
+        let here = std::env::current_dir().unwrap();
         assert_eq!(
             cmd,
-            "cargo xtask eval --checkpoint runs/x/checkpoints/step_9 --env car --out results/eval_car"
+            format!(
+                "cargo xtask eval --checkpoint {} --env car --out results/eval_car",
+                shell_word(&here.join("runs/x/checkpoints/step_9"))
+            )
         );
     }
 }

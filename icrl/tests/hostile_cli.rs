@@ -241,25 +241,66 @@ fn a_fifo_where_histories_are_read_is_refused_at_once() {
         vec!["plot-histories", &f, "--out", &out],
         vec!["dataset", "merge", "--out", &merged, &f],
     ] {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_icrl"))
-            .args(&args)
-            .stdout(std::process::Stdio::piped())
-            .stderr(std::process::Stdio::piped())
-            .spawn()
-            .unwrap();
-        let started = std::time::Instant::now();
-        while child.try_wait().unwrap().is_none() {
-            if started.elapsed().as_secs() > 60 {
-                child.kill().unwrap();
-                panic!("{args:?} blocked on the FIFO");
-            }
-            std::thread::sleep(std::time::Duration::from_millis(50));
-        }
-        refused(
-            &child.wait_with_output().unwrap(),
-            "it is a FIFO, not a regular file",
-        );
+        refused(&unblocked(&args), "it is a FIFO, not a regular file");
     }
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Runs icrl with `args`, killing it (and failing) if it is still running
+/// after 60 s: blocked on a FIFO, say.
+fn unblocked<S: AsRef<std::ffi::OsStr> + std::fmt::Debug>(args: &[S]) -> Output {
+    let mut child = Command::new(env!("CARGO_BIN_EXE_icrl"))
+        .args(args)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let started = std::time::Instant::now();
+    while child.try_wait().unwrap().is_none() {
+        if started.elapsed().as_secs() > 60 {
+            child.kill().unwrap();
+            panic!("{args:?} blocked");
+        }
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    }
+    child.wait_with_output().unwrap()
+}
+
+/// Trial 3, weak: `sweep --grid FIFO`, and a run whose `metrics.jsonl` is a
+/// FIFO resumed (`--resume`, `--resume-in-out`) or forked, blocked on the
+/// read until signalled. Each is refused at once, naming the path and what
+/// it is.
+#[test]
+fn a_fifo_grid_or_run_file_is_refused_at_once() {
+    let dir = tmp("fifo-run");
+    let grid = dir.join("grid.toml");
+    mkfifo(&grid);
+    let out = unblocked(&["sweep", "--grid", &s(&grid), "--emit", "slurm"]);
+    refused(
+        &out,
+        "it is a FIFO, not a regular file: give the grid's TOML file",
+    );
+    refused(&out, &s(&grid));
+    let runs = dir.join("runs");
+    let (run, _) = tiny_eppo_run(&runs);
+    let metrics = run.join("metrics.jsonl");
+    std::fs::remove_file(&metrics).unwrap();
+    mkfifo(&metrics);
+    let more = ["--set", "total_updates=4"];
+    let (r, fork, out) = (s(&run), s(&dir.join("fork")), s(&runs));
+    for extra in [
+        vec!["--resume", &r],
+        vec!["--resume", &r, "--fork", &fork],
+        vec!["--out", &out, "--resume-in-out"],
+    ] {
+        let mut args = vec!["pretrain", "--env", "darkroom"];
+        args.extend(extra);
+        args.extend(more);
+        let got = unblocked(&args);
+        refused(&got, "it is a FIFO, not a regular file");
+        refused(&got, &s(&metrics));
+    }
+    assert!(!dir.join("fork").exists(), "no fork was made");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
@@ -668,11 +709,29 @@ fn a_full_disk_is_named_before_training_and_when_a_dataset_fills_it() {
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// The printed eval command works from any folder (trial 3, weak: with a
+/// relative `--out`, it named the checkpoint relative to where pretrain ran,
+/// not where `cargo xtask` runs, the workspace): pretrain here runs in `dir`
+/// with `--out "my runs"`, the printed command in the test's own folder.
 #[test]
 fn the_printed_eval_command_works_as_printed() {
     // A path with a space: the command must be quoted to survive pasting.
     let dir = tmp("printed");
-    let (run, stdout) = tiny_eppo_run(&dir.join("my runs"));
+    let args = tiny_eppo_args(Path::new("my runs"));
+    let stdout = succeeded(
+        &Command::new(env!("CARGO_BIN_EXE_icrl"))
+            .args(&args)
+            .current_dir(&dir)
+            .output()
+            .unwrap(),
+    );
+    let run = std::fs::read_dir(dir.join("my runs"))
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    assert_ne!(std::env::current_dir().unwrap(), dir);
     let line = stdout
         .lines()
         .skip_while(|l| !l.starts_with("evaluate it with:"))
@@ -681,7 +740,11 @@ fn the_printed_eval_command_works_as_printed() {
     let words = shlex::split(line.trim()).unwrap_or_else(|| panic!("not shell words: {line}"));
     assert_eq!(words[..3], ["cargo", "xtask", "eval"], "{line}");
     let ck = words.iter().position(|w| w == "--checkpoint").unwrap();
-    assert!(Path::new(&words[ck + 1]).starts_with(&run), "{line}");
+    assert_eq!(
+        Path::new(&words[ck + 1]).canonicalize().ok(),
+        run.join("checkpoints/step_2").canonicalize().ok(),
+        "{line}"
+    );
     // `cargo xtask eval` passes its arguments to `icrl eval`: run them, on a
     // tiny task set, into a temporary folder.
     let mut args: Vec<String> = vec!["eval".into()];
@@ -710,6 +773,52 @@ fn the_printed_eval_command_works_as_printed() {
     }
     let args: Vec<&str> = args.iter().map(String::as_str).collect();
     succeeded(&icrl(&args));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Trial 3, weak: `eval --checkpoint RUN/checkpoints/step_N --out
+/// RUN/checkpoints/step_N` wrote its reports among the checkpoint's files.
+/// An --out that is or lies inside a checkpoint folder, or inside a run's
+/// `checkpoints/`, is refused by name before anything is written; one
+/// beside the checkpoints is not.
+#[test]
+fn eval_never_writes_into_a_checkpoint_folder() {
+    let dir = tmp("eval-into-checkpoint").canonicalize().unwrap();
+    let run = dir.join("run");
+    let ck = run.join("checkpoints/step_4");
+    std::fs::create_dir_all(&ck).unwrap();
+    std::fs::write(run.join("config.toml"), "seed = 0\n").unwrap();
+    std::fs::write(ck.join("manifest.json"), "{}").unwrap();
+    let listing = |p: &Path| -> Vec<String> {
+        let mut names: Vec<String> = std::fs::read_dir(p)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .collect();
+        names.sort();
+        names
+    };
+    let before = (listing(&ck), listing(&run.join("checkpoints")));
+    for (out, inside) in [
+        (ck.clone(), ck.clone()),
+        (ck.join("eval"), ck.clone()),
+        (ck.join("a/../b"), ck.clone()),
+        (run.join("checkpoints"), run.join("checkpoints")),
+        (run.join("checkpoints/eval"), run.join("checkpoints")),
+    ] {
+        let got = eval(&[&ck], &out, &[]);
+        refused(&got, "lies inside the checkpoint");
+        refused(&got, &s(&inside));
+        refused(&got, "pass another --out");
+        let replot = icrl(&["eval", "--from", &s(&dir), "--out", &s(&out)]);
+        refused(&replot, "pass another --out");
+    }
+    assert_eq!(
+        (listing(&ck), listing(&run.join("checkpoints"))),
+        before,
+        "nothing written"
+    );
+    // Beside the checkpoints, in the run folder, is allowed.
+    succeeded(&eval(&[], &run.join("eval"), &[]));
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

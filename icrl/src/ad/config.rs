@@ -95,46 +95,9 @@ fn default_train_fraction() -> f64 {
     1.0
 }
 
-/// The presets shipped in `icrl/presets/ad-{env}-{preset}.toml`: `table2` is
-/// the paper's Table 2 (a GPU preset), `quick` fits 2 CPU cores.
-pub const PRESETS: [(&str, &str); 6] = [
-    (
-        "ad-darkroom-table2",
-        include_str!("../../presets/ad-darkroom-table2.toml"),
-    ),
-    (
-        "ad-point-table2",
-        include_str!("../../presets/ad-point-table2.toml"),
-    ),
-    (
-        "ad-car-table2",
-        include_str!("../../presets/ad-car-table2.toml"),
-    ),
-    (
-        "ad-darkroom-quick",
-        include_str!("../../presets/ad-darkroom-quick.toml"),
-    ),
-    (
-        "ad-point-quick",
-        include_str!("../../presets/ad-point-quick.toml"),
-    ),
-    (
-        "ad-car-quick",
-        include_str!("../../presets/ad-car-quick.toml"),
-    ),
-];
-
 /// The preset `ad-{env}-{preset}` as a TOML table.
 pub fn preset_table(env: &str, preset: &str) -> Result<toml::Table, AdError> {
-    let name = format!("ad-{env}-{preset}");
-    let (_, text) = PRESETS.iter().find(|(n, _)| *n == name).ok_or_else(|| {
-        AdError::Config(format!(
-            "no AD preset '{name}'; available: {}",
-            PRESETS.map(|p| p.0).join(", ")
-        ))
-    })?;
-    text.parse::<toml::Table>()
-        .map_err(|e| AdError::Config(format!("preset {name}: {e}")))
+    crate::presets::preset_table("ad", env, preset).map_err(|e| AdError::Config(e.to_string()))
 }
 
 impl AdConfig {

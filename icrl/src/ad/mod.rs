@@ -85,9 +85,7 @@ use crate::model::ModelError;
 use crate::optim::{Adam, AdamConfig};
 
 pub use agent::{AdAgent, CheckpointInfo};
-pub use config::{
-    AdConfig, AdSpec, CtgLabel, PRESETS, TOKEN_LAYOUT, memory_estimate, preset_table,
-};
+pub use config::{AdConfig, AdSpec, CtgLabel, TOKEN_LAYOUT, memory_estimate, preset_table};
 pub use model::{AdModel, loss};
 pub use windows::{TokenSet, to_go};
 

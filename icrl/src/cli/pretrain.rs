@@ -27,7 +27,7 @@ pub fn eppo(
     let cfg_err = |e: crate::presets::PresetError| EppoError::Config(e.to_string());
     let (name, mut table) = match resume {
         Some(path) => {
-            let (run, ckpt) = RunDir::resolve_resume(path)?;
+            let (run, ckpt) = resolve_resume(path)?;
             RunDir::check_resume_flags(&ckpt, "eppo", env)?;
             let mut p = run.config_path();
             // A lost config.toml: every EPPO checkpoint holds its own copy
@@ -78,6 +78,31 @@ pub fn eppo(
     Ok(report)
 }
 
+/// [`RunDir::resolve_resume`] for `--resume` and `--fork`, then
+/// [`check_run_files`] on the run.
+fn resolve_resume(path: &Path) -> Result<(RunDir, PathBuf), CheckpointError> {
+    let (run, ckpt) = RunDir::resolve_resume(path)?;
+    check_run_files(&run)?;
+    Ok((run, ckpt))
+}
+
+/// Refuses to continue or branch a run whose files that a resume or fork
+/// reads (`config.toml`, `spec.json`, `metrics.jsonl`) are not regular
+/// files: a FIFO there blocked the read until the process was killed.
+fn check_run_files(run: &RunDir) -> Result<(), CheckpointError> {
+    for name in ["config.toml", "spec.json", "metrics.jsonl"] {
+        let path = run.path.join(name);
+        crate::guard::regular_file(&path).map_err(|problem| CheckpointError::Invalid {
+            path,
+            problem,
+            fix: "a run's files are the regular files icrl wrote: move it away and restore the \
+                  run's own from a copy"
+                .into(),
+        })?;
+    }
+    Ok(())
+}
+
 /// What `pretrain --resume-in-out` does in its `--out` folder.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub enum InOut {
@@ -103,6 +128,7 @@ pub fn run_in_out(
     let Some((run, _, updates)) = RunDir::furthest_in(out, env, method)? else {
         return Ok(InOut::Start);
     };
+    check_run_files(&run)?;
     let path = run.config_path();
     let invalid = |problem: String| CheckpointError::Invalid {
         path: path.clone(),
@@ -226,7 +252,7 @@ pub fn fork(
     sets: &[String],
     out: &Path,
 ) -> Result<PathBuf, CheckpointError> {
-    let (run, ckpt) = RunDir::resolve_resume(from)?;
+    let (run, ckpt) = resolve_resume(from)?;
     RunDir::check_resume_flags(&ckpt, method, env)?;
     // EPPO checkpoints hold a copy of the config (a lost config.toml).
     let path = [run.config_path(), ckpt.join("config.toml")]
@@ -360,7 +386,7 @@ pub fn ad(
                     path.display()
                 )));
             }
-            let (run, ckpt) = RunDir::resolve_resume(path)?;
+            let (run, ckpt) = resolve_resume(path)?;
             RunDir::check_resume_flags(&ckpt, "ad", env)?;
             run.check_latest(&ckpt)?;
             Some((run, ckpt))

@@ -108,24 +108,9 @@ pub(crate) fn seal(path: &Path) -> std::io::Result<()> {
 /// opening a FIFO blocks until a writer comes, where no stop signal can end
 /// the wait, and a device or a folder holds no histories.
 fn regular_file(path: &Path) -> Result<(), Problem> {
-    use std::os::unix::fs::FileTypeExt;
-    let kind = std::fs::metadata(path)
-        .map_err(|e| Problem::Unreadable(e.to_string()))?
-        .file_type();
-    let what = if kind.is_file() {
-        return Ok(());
-    } else if kind.is_fifo() {
-        "a FIFO"
-    } else if kind.is_dir() {
-        "a folder"
-    } else if kind.is_socket() {
-        "a socket"
-    } else {
-        "a device"
-    };
-    Err(Problem::Unreadable(format!(
-        "it is {what}, not a regular file: give the dataset's .h5 file"
-    )))
+    std::fs::metadata(path).map_err(|e| Problem::Unreadable(e.to_string()))?;
+    crate::guard::regular_file(path)
+        .map_err(|what| Problem::Unreadable(format!("{what}: give the dataset's .h5 file")))
 }
 
 /// Checks the checksum in the user block and returns it. `Ok(None)`: the

@@ -27,12 +27,12 @@ use serde::Serialize;
 use super::error::EvalCmdError;
 use super::load::{ContextLimit, LoadedAgent};
 use super::render::render;
-use crate::report::{EvalReport, Method};
 use crate::agent::{AgentError, Conditioning};
 use crate::eval::{
     self, BudgetRange, EvalConfig, EvalError, Summary, grid, sample_budgets, targets_sweep,
 };
 use crate::plots::{self, EnvCurves};
+use crate::report::{EvalReport, Method};
 
 /// Everything the `eval` command needs, already parsed.
 #[derive(Clone, Debug, PartialEq)]
@@ -675,12 +675,63 @@ pub const MAX_EVAL_EPISODES: u128 = 1_000_000;
 /// The RTG and CTG values `eval` accepts (`--rtg`, `--budgets`).
 pub const CONDITIONING_RANGE: (f32, f32) = (0.0, 10_000.0);
 
-/// Checks that `dir` can be created and written to, before any long work.
+/// Checks that `dir` can be created and written to, before any long work,
+/// and that it is not inside a checkpoint ([`refuse_checkpoint_folder`]).
 pub fn check_output_dir(dir: &Path) -> Result<(), EvalCmdError> {
+    refuse_checkpoint_folder(dir)?;
     output::create_folder(dir)?;
     let probe = dir.join(format!(".icrl-write-test-{}", std::process::id()));
     std::fs::write(&probe, b"").map_err(io_err(dir))?;
     std::fs::remove_file(&probe).map_err(io_err(&probe))
+}
+
+/// Refuses an output folder that is a checkpoint folder (one holding a
+/// `manifest.json`) or lies inside one, or inside a run's `checkpoints/`:
+/// reports written there would sit among the checkpoint's files, which its
+/// manifest does not list and its pruning removes. `dir` is taken as it
+/// will be made: its nearest existing folder resolved (links, `..`), then
+/// the rest of the path.
+fn refuse_checkpoint_folder(dir: &Path) -> Result<(), EvalCmdError> {
+    let mut base = dir;
+    let mut rest = Vec::new();
+    while !base.as_os_str().is_empty() && !base.exists() {
+        match (base.parent(), base.file_name()) {
+            (Some(parent), Some(name)) => {
+                rest.push(name);
+                base = parent;
+            }
+            _ => break,
+        }
+    }
+    let base = if base.as_os_str().is_empty() {
+        Path::new(".")
+    } else {
+        base
+    };
+    let mut full = base.canonicalize().unwrap_or_else(|_| base.to_path_buf());
+    full.extend(rest.iter().rev());
+    let is_run = |p: &Path| p.join("config.toml").is_file() || p.join("spec.json").is_file();
+    for a in full.ancestors() {
+        let inside = if a.join(crate::checkpoint::MANIFEST).is_file() {
+            "the checkpoint folder"
+        } else if a.file_name().is_some_and(|n| n == "checkpoints")
+            && a.parent().is_some_and(is_run)
+        {
+            "the checkpoints folder"
+        } else {
+            continue;
+        };
+        return Err(output::OutputError {
+            path: dir.to_path_buf(),
+            problem: format!(
+                "it is or lies inside {inside} {}, where reports would sit among a checkpoint's \
+                 files: pass another --out, outside every checkpoint (e.g. beside the run folder)",
+                a.display()
+            ),
+        }
+        .into());
+    }
+    Ok(())
 }
 
 /// Runs the `eval` command for `agents` (plus a random policy when asked).
@@ -785,6 +836,7 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
 /// are skipped). Writes `figure1_all` and, when sweeps are present,
 /// `figure2_all` (PNG and SVG) into `out`.
 pub fn replot(dirs: &[PathBuf], out: &Path, force: bool) -> Result<EvalOutputs, EvalCmdError> {
+    refuse_checkpoint_folder(out)?;
     for f in [
         "figure1_all.png",
         "figure1_all.svg",
