@@ -50,7 +50,8 @@ enum Command {
     },
     /// Evaluate checkpoints in context on held-out edge-oriented tasks: JSON, CSV, figures.
     Eval(icrl_eval::EvalArgs),
-    /// Seeds and settings as a Slurm job array (--emit slurm), then their table (--gather).
+    /// Seeds and settings trained here one after another (--run) or as a Slurm job array
+    /// (--emit slurm), then their table (--gather).
     Sweep(SweepArgs),
     /// Remove the replay buffers from finished EPPO checkpoints, keeping them loadable: they
     /// still evaluate and fork, and a resume refills the replay.
@@ -67,8 +68,12 @@ struct SweepArgs {
     #[arg(long, value_name = "FILE")]
     grid: PathBuf,
     /// Write OUT/sweep.sbatch: one array task per seed and setting.
-    #[arg(long, value_parser = ["slurm"], required_unless_present = "gather")]
+    #[arg(long, value_parser = ["slurm"], required_unless_present_any = ["gather", "run"])]
     emit: Option<String>,
+    /// Train every task here, one after another (a finished one is skipped, a stopped one
+    /// resumes; Ctrl-C stops the task in progress at a checkpoint and ends the sweep, exit 130).
+    #[arg(long, conflicts_with_all = ["emit", "gather"])]
+    run: bool,
     /// Evaluate every finished run's last checkpoint and write OUT/gather/table.md and table.csv.
     #[arg(long, conflicts_with = "emit")]
     gather: bool,
@@ -110,9 +115,27 @@ fn drop_replay(paths: &[PathBuf]) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn sweep(args: SweepArgs) -> anyhow::Result<()> {
-    use icrl::cli::sweep::{GatherOptions, SweepGrid, emit_slurm, gather};
+fn sweep(args: SweepArgs) -> anyhow::Result<ExitCode> {
+    use icrl::cli::sweep::{GatherOptions, SweepGrid, emit_slurm, gather, run_local};
     let grid = SweepGrid::load(&args.grid)?;
+    if args.run {
+        let ran = run_local(&grid, &std::env::current_exe()?)?;
+        println!(
+            "{} tasks trained, {} already finished{}",
+            ran.trained,
+            ran.skipped,
+            if ran.stopped {
+                "; stopped: run the same command again to continue"
+            } else {
+                ""
+            }
+        );
+        return Ok(if ran.stopped {
+            ExitCode::from(icrl::stop::EXIT_INTERRUPTED)
+        } else {
+            ExitCode::SUCCESS
+        });
+    }
     if !args.gather {
         let icrl = match &grid.slurm.icrl {
             Some(p) => p.clone(),
@@ -126,7 +149,7 @@ fn sweep(args: SweepArgs) -> anyhow::Result<()> {
             icrl::run_summary::shell_word(&script),
             icrl::run_summary::shell_word(&args.grid)
         );
-        return Ok(());
+        return Ok(ExitCode::SUCCESS);
     }
     let threads = args
         .threads
@@ -159,7 +182,7 @@ fn sweep(args: SweepArgs) -> anyhow::Result<()> {
     if g.evaluated == 0 {
         anyhow::bail!("no finished run to gather");
     }
-    Ok(())
+    Ok(ExitCode::SUCCESS)
 }
 
 #[derive(Debug, Args)]
@@ -593,7 +616,10 @@ fn main() -> ExitCode {
         }
         Command::Dataset(args) => dataset(args),
         Command::Eval(args) => icrl_eval::eval(args),
-        Command::Sweep(args) => sweep(args),
+        Command::Sweep(args) => match sweep(args) {
+            Ok(code) => return code,
+            Err(e) => Err(e),
+        },
         Command::DropReplay { paths } => drop_replay(&paths),
     };
     match result {
