@@ -55,6 +55,40 @@ pub fn column_mean_std<'a>(
     (mean, std)
 }
 
+/// Spearman's rank correlation of paired samples (average ranks for ties);
+/// `None` with fewer than two pairs or a sample without spread.
+pub fn spearman(xs: &[f64], ys: &[f64]) -> Option<f64> {
+    fn ranks(v: &[f64]) -> Vec<f64> {
+        let mut order: Vec<usize> = (0..v.len()).collect();
+        order.sort_by(|&a, &b| v[a].total_cmp(&v[b]));
+        let mut ranks = vec![0.0; v.len()];
+        let mut i = 0;
+        while i < order.len() {
+            let mut j = i;
+            while j + 1 < order.len() && v[order[j + 1]] == v[order[i]] {
+                j += 1;
+            }
+            for &k in &order[i..=j] {
+                ranks[k] = (i + j) as f64 / 2.0 + 1.0;
+            }
+            i = j + 1;
+        }
+        ranks
+    }
+    if xs.len() != ys.len() || xs.len() < 2 {
+        return None;
+    }
+    let (rx, ry) = (ranks(xs), ranks(ys));
+    let mean = (xs.len() as f64 + 1.0) / 2.0;
+    let (mut cov, mut vx, mut vy) = (0.0, 0.0, 0.0);
+    for (a, b) in rx.iter().zip(&ry) {
+        cov += (a - mean) * (b - mean);
+        vx += (a - mean).powi(2);
+        vy += (b - mean).powi(2);
+    }
+    (vx > 0.0 && vy > 0.0).then(|| cov / (vx * vy).sqrt())
+}
+
 /// Mean and standard error of `xs`; `None` for an empty sample.
 pub fn mean_se(xs: &[f64]) -> Option<MeanSe> {
     let n = xs.len();
@@ -74,6 +108,20 @@ pub fn mean_se(xs: &[f64]) -> Option<MeanSe> {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn spearman_ranks_with_ties_and_refuses_what_has_no_spread() {
+        let xs = [1.0, 2.0, 3.0, 4.0];
+        assert_eq!(spearman(&xs, &[10.0, 20.0, 30.0, 40.0]), Some(1.0));
+        assert_eq!(spearman(&xs, &[4.0, 3.0, 2.0, 1.0]), Some(-1.0));
+        // Monotone but not linear: still 1.
+        assert_eq!(spearman(&xs, &[1.0, 8.0, 27.0, 1000.0]), Some(1.0));
+        // Ties share their average rank: ranks (1, 2.5, 2.5, 4) against (1, 2, 3, 4).
+        let rho = spearman(&xs, &[0.0, 5.0, 5.0, 9.0]).unwrap();
+        assert!((rho - 0.9486832980505138).abs() < 1e-12, "{rho}");
+        assert_eq!(spearman(&xs, &[1.0; 4]), None);
+        assert_eq!(spearman(&[1.0], &[1.0]), None);
+    }
 
     #[test]
     fn mean_and_standard_error_of_a_fixed_sample() {

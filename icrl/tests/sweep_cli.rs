@@ -84,6 +84,44 @@ fn a_grid_runs_here_task_after_task_and_a_second_run_skips_the_finished() {
         1,
         "nothing new"
     );
+    // Gathered at the evaluation seeds the grid declares, the random policy
+    // beside each run: one row per setting, one per run and seed.
+    let mut text = fs::read_to_string(&grid).unwrap();
+    text.push_str(
+        "[gather]\neval_seeds = [3, 5]\ntasks = 2\nepisodes = 2\nn_budgets = 2\nrandom = true\n",
+    );
+    fs::write(&grid, text).unwrap();
+    let gathered = Command::new(env!("CARGO_BIN_EXE_icrl"))
+        .args(["sweep", "--gather", "--threads", "1", "--grid"])
+        .arg(&grid)
+        .stdin(Stdio::null())
+        .output()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&gathered.stdout);
+    assert!(
+        gathered.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&gathered.stderr)
+    );
+    assert!(
+        stdout.contains("4 runs evaluated"),
+        "2 runs x 2 seeds: {stdout}"
+    );
+    let table = fs::read_to_string(dir.join("runs/gather/table.md")).unwrap();
+    assert!(table.contains("evaluation seeds 3, 5"), "{table}");
+    assert!(table.contains("| preset | 2 |"), "{table}");
+    for (seed, eval_seed) in [(0, 3), (0, 5), (1, 3), (1, 5)] {
+        assert!(
+            table.contains(&format!("| preset | {seed} | {eval_seed} |")),
+            "{table}"
+        );
+        let folder = dir.join(format!("runs/gather/task_00{seed}/seed{eval_seed}"));
+        assert!(
+            folder.join("random_darkroom.json").is_file(),
+            "{}",
+            folder.display()
+        );
+    }
     fs::remove_dir_all(&dir).unwrap();
 }
 
