@@ -64,7 +64,7 @@ fn a_grid_runs_here_task_after_task_and_a_second_run_skips_the_finished() {
         stdout.contains("2 tasks trained, 0 already finished"),
         "{stdout}"
     );
-    for task in ["task_000", "task_001"] {
+    for task in ["seed0", "seed1"] {
         let runs = runs_of(&dir.join("runs").join(task));
         assert_eq!(runs.len(), 1, "{task}: one run folder");
         assert!(
@@ -80,7 +80,7 @@ fn a_grid_runs_here_task_after_task_and_a_second_run_skips_the_finished() {
         "{stdout}"
     );
     assert_eq!(
-        runs_of(&dir.join("runs").join("task_000")).len(),
+        runs_of(&dir.join("runs").join("seed0")).len(),
         1,
         "nothing new"
     );
@@ -115,7 +115,7 @@ fn a_grid_runs_here_task_after_task_and_a_second_run_skips_the_finished() {
             table.contains(&format!("| preset | {seed} | {eval_seed} |")),
             "{table}"
         );
-        let folder = dir.join(format!("runs/gather/task_00{seed}/seed{eval_seed}"));
+        let folder = dir.join(format!("runs/gather/seed{seed}/eval_seed{eval_seed}"));
         assert!(
             folder.join("random_darkroom.json").is_file(),
             "{}",
@@ -142,7 +142,7 @@ fn a_stop_reaches_the_task_in_progress_once_and_the_next_run_continues_it() {
         .unwrap();
     // Wait for the task's first checkpoint, then stop the sweep (as a
     // scheduler would: the signal goes to the sweep's pid only).
-    let task = dir.join("runs").join("task_000");
+    let task = dir.join("runs").join("seed0");
     let start = Instant::now();
     let checkpointed = |run: &PathBuf| {
         fs::read_dir(run.join("checkpoints")).is_ok_and(|d| {
@@ -173,7 +173,7 @@ fn a_stop_reaches_the_task_in_progress_once_and_the_next_run_continues_it() {
         "the task heard it: {stderr}"
     );
     assert!(
-        !dir.join("runs").join("task_001").exists(),
+        !dir.join("runs").join("seed1").exists(),
         "no task starts after a stop"
     );
     // Run again with a reachable end: the stopped run continues in its own
@@ -197,6 +197,6 @@ fn a_stop_reaches_the_task_in_progress_once_and_the_next_run_continues_it() {
         String::from_utf8_lossy(&out.stderr)
     );
     assert_eq!(runs_of(&task).len(), 1, "the same run folder: {stdout}");
-    assert_eq!(runs_of(&dir.join("runs").join("task_001")).len(), 1);
+    assert_eq!(runs_of(&dir.join("runs").join("seed1")).len(), 1);
     fs::remove_dir_all(&dir).unwrap();
 }

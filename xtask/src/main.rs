@@ -62,6 +62,14 @@ enum Command {
         #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
         args: Vec<String>,
     },
+    /// Set up, then train a grid of seeds and settings here or as a Slurm array, and gather
+    /// its table: `icrl sweep [ARGS...]` (e.g. `--grid results/final/darkroom.toml --run`).
+    #[command(disable_help_flag = true)]
+    Sweep {
+        /// Passed to `icrl sweep` verbatim; `--help` lists them.
+        #[arg(trailing_var_arg = true, allow_hyphen_values = true)]
+        args: Vec<String>,
+    },
     /// Set up, then render a scene or environment off-screen to PNG:
     /// `render [ARGS...]` (e.g. `--scene FILE.xml --out frame.png`).
     #[command(disable_help_flag = true)]
@@ -101,6 +109,7 @@ fn main() -> ExitCode {
         Command::Pretrain { args } => delegate::icrl("pretrain", &args),
         Command::Dataset { args } => delegate::icrl("dataset", &args),
         Command::Eval { args } => delegate::icrl("eval", &args),
+        Command::Sweep { args } => delegate::icrl("sweep", &args),
         Command::Render { args } => delegate::render(&args),
         Command::Bench { target, args } => delegate::bench(target, &args),
     };
@@ -126,6 +135,11 @@ mod tests {
             panic!("not parsed as pretrain");
         };
         assert_eq!(args, ["--env", "car", "--help", "-x"]);
+
+        let Command::Sweep { args } = parse(&["sweep", "--grid", "g.toml", "--run"]) else {
+            panic!("not parsed as sweep");
+        };
+        assert_eq!(args, ["--grid", "g.toml", "--run"]);
 
         let Command::Test { args, slurm } = parse(&["test", "-p", "icrl", "--", "--nocapture"])
         else {

@@ -18,7 +18,8 @@
 //! ```
 //!
 //! `--emit slurm` writes `OUT/sweep.sbatch`: one array task per (setting,
-//! seed), each a plain `icrl pretrain ... --out OUT/task_K --resume-in-out`,
+//! seed), each a plain `icrl pretrain ... --out OUT/task_K --resume-in-out`
+//! (`OUT/seedN` when only the seed varies),
 //! so a task that Slurm requeues (`--requeue`: preempted, or stopped by the
 //! `--signal` ahead of its time limit, which the script turns into a
 //! checkpoint and a requeue) continues its own run. `--run` runs the same
@@ -88,7 +89,7 @@ pub struct SweepGrid {
     #[serde(default = "default_preset")]
     pub preset: String,
     pub seeds: Vec<u64>,
-    /// The sweep's folder: one `task_K` folder per array task.
+    /// The sweep's folder: one `task_K` (or `seedN`) folder per array task.
     pub out: PathBuf,
     /// AD's learning histories.
     pub dataset: Option<PathBuf>,
@@ -102,6 +103,9 @@ pub struct SweepGrid {
     pub slurm: SlurmOptions,
     /// How `--gather` evaluates (absent: evaluation seed 0, the command's flags).
     pub gather: Option<GatherProtocol>,
+    /// The file it was read from, for messages.
+    #[serde(skip)]
+    pub file: PathBuf,
 }
 
 /// The evaluation protocol of `--gather`, the grid file's `[gather]`: the
@@ -161,6 +165,7 @@ impl SweepGrid {
             .map_err(|e| problem(format!("{e}: give the grid's TOML file")))?;
         let text = std::fs::read_to_string(path).map_err(|e| problem(e.to_string()))?;
         let mut grid: SweepGrid = toml::from_str(&text).map_err(|e| problem(e.to_string()))?;
+        grid.file = path.to_path_buf();
         grid.env
             .parse::<EnvName>()
             .map_err(|e| problem(e.to_string()))?;
@@ -293,9 +298,19 @@ impl SweepGrid {
         sets
     }
 
-    /// The folder of task `index` (it holds one run folder).
-    pub fn task_dir(&self, index: usize) -> PathBuf {
-        self.out.join(format!("task_{index:03}"))
+    /// The name of a task's folder (it holds one run folder): `seed<N>` when
+    /// only the seed varies (`results/final/<env>/seed<N>`), else `task_<K>`.
+    pub fn task_name(&self, task: &Task) -> String {
+        if self.grid.is_empty() {
+            format!("seed{}", task.seed)
+        } else {
+            format!("task_{:03}", task.index)
+        }
+    }
+
+    /// A task's folder under `out`.
+    pub fn task_dir(&self, task: &Task) -> PathBuf {
+        self.out.join(self.task_name(task))
     }
 
     /// The `icrl` arguments of a task: a plain `pretrain` into its own folder.
@@ -319,7 +334,7 @@ impl SweepGrid {
         }
         args.extend([
             "--out".into(),
-            self.task_dir(task.index).display().to_string(),
+            self.task_dir(task).display().to_string(),
             "--resume-in-out".into(),
         ]);
         args
@@ -615,7 +630,7 @@ fn ad_memory_gib(grid: &SweepGrid, tables: &[toml::Table]) -> Result<u64, String
 /// The sbatch script of the whole sweep.
 pub fn slurm_script(grid: &SweepGrid, icrl: &Path) -> Result<String, SweepError> {
     let grid_err = |problem: String| SweepError::Grid {
-        path: grid.out.clone(),
+        path: grid.file.clone(),
         problem,
     };
     check_script_text("the icrl binary's path", &icrl.display().to_string()).map_err(grid_err)?;
@@ -759,7 +774,7 @@ pub fn run_local(grid: &SweepGrid, icrl: &Path) -> Result<Ran, SweepError> {
             ran.stopped = true;
             break;
         }
-        let dir = grid.task_dir(task.index);
+        let dir = grid.task_dir(&task);
         if let InOut::Finished { run, updates } =
             run_in_out(&dir, &grid.env, &grid.method, &grid.sets(&task))?
         {
@@ -849,7 +864,7 @@ pub fn gather(grid: &SweepGrid, opts: &GatherOptions) -> Result<Gathered, SweepE
     let mut runs = Vec::new();
     let mut files = Vec::new();
     for task in grid.tasks() {
-        let dir = grid.task_dir(task.index);
+        let dir = grid.task_dir(&task);
         let run = match run_in_out(&dir, &grid.env, &grid.method, &grid.sets(&task))? {
             InOut::Finished { run, .. } => run,
             InOut::Resume(run) => {
@@ -866,7 +881,7 @@ pub fn gather(grid: &SweepGrid, opts: &GatherOptions) -> Result<Gathered, SweepE
         };
         for &eval_seed in &protocol.eval_seeds {
             let mut agent = crate::eval::load::load_checkpoint(&run, env)?;
-            agent.label = Some(format!("task_{:03}", task.index));
+            agent.label = Some(grid.task_name(&task));
             let eval = crate::eval::command::EvalOptions {
                 env,
                 tasks: protocol.tasks.unwrap_or(opts.tasks),
@@ -880,8 +895,8 @@ pub fn gather(grid: &SweepGrid, opts: &GatherOptions) -> Result<Gathered, SweepE
                 out: grid
                     .out
                     .join("gather")
-                    .join(format!("task_{:03}", task.index))
-                    .join(format!("seed{eval_seed}")),
+                    .join(grid.task_name(&task))
+                    .join(format!("eval_seed{eval_seed}")),
                 eval_seed,
                 batch: 256,
                 threads: opts.threads,
