@@ -63,7 +63,7 @@ pub fn eppo(
     if let (Some(saved), Some(path)) = (&saved, resume) {
         check_eppo_resume(path, saved, &table)?;
     }
-    let cfg: EppoConfig = crate::presets::resolve(&name, table).map_err(cfg_err)?;
+    let cfg = EppoConfig::from_table(&name, table)?;
     let opts = PretrainOptions {
         env: env_name,
         cfg,

@@ -280,7 +280,7 @@ impl SweepGrid {
             "ad" => crate::ad::AdConfig::from_table(table.clone())
                 .map(|_| ())
                 .map_err(|e| e.to_string()),
-            _ => crate::presets::resolve::<crate::eppo::EppoConfig>("sweep", table.clone())
+            _ => crate::eppo::EppoConfig::from_table("sweep", table.clone())
                 .map_err(|e| e.to_string())
                 .and_then(|c| c.validate().map_err(|e| e.to_string())),
         };
@@ -586,8 +586,8 @@ fn eppo_memory_gib(grid: &SweepGrid, tables: &[toml::Table]) -> Result<u64, Stri
     let spec = net_spec(grid)?;
     let mut most: f64 = 0.0;
     for t in tables {
-        let cfg: crate::eppo::EppoConfig =
-            crate::presets::resolve("sweep", t.clone()).map_err(|e| e.to_string())?;
+        let cfg =
+            crate::eppo::EppoConfig::from_table("sweep", t.clone()).map_err(|e| e.to_string())?;
         most = most.max(crate::eppo::memory_estimate(&cfg, &spec).total());
     }
     Ok(doubled_gib(most))

@@ -53,8 +53,11 @@ impl EppoAgent {
         }
         let text = std::fs::read_to_string(dir.join("config.toml"))
             .map_err(|e| bad("config.toml", e.to_string()))?;
-        let mut cfg: EppoConfig =
-            toml::from_str(&text).map_err(|e| bad("config.toml", e.to_string()))?;
+        let table = text
+            .parse::<toml::Table>()
+            .map_err(|e| bad("config.toml", e.to_string()))?;
+        let mut cfg = EppoConfig::from_table("config.toml", table)
+            .map_err(|e| bad("config.toml", e.to_string()))?;
         cfg.device = if device == Device::Cpu {
             "cpu".into()
         } else {

@@ -11,7 +11,6 @@ use thiserror::Error;
 
 use safety_envs::{EnvError, EnvName, GoalShown, HazardsShown, spawn_config};
 
-use super::multiplier::Gains;
 use super::net::NetSpec;
 use super::replay::{BudgetInTargets, OverBudget, Shaping};
 use crate::checkpoint::{CheckpointError, Retention};
@@ -107,16 +106,6 @@ pub struct EppoConfig {
     /// Rounds in `constraint_after_revisit`'s average.
     #[serde(default = "default_constraint_revisit_rounds")]
     pub constraint_revisit_rounds: usize,
-    /// Proportional gain of the PID Lagrangian (Stooke et al., 2020) on the
-    /// smoothed violation (`multiplier.rs`); 0 with `lambda_kd` 0: Eq. (7).
-    #[serde(default)]
-    pub lambda_kp: f64,
-    /// Derivative gain of the PID Lagrangian on the smoothed violation's rise.
-    #[serde(default)]
-    pub lambda_kd: f64,
-    /// EMA weight of the past in the smoothed violation of the P and D terms.
-    #[serde(default = "default_lambda_smoothing")]
-    pub lambda_smoothing: f64,
     /// Weight of the critic losses against the actor loss.
     pub critic_weight: f64,
     /// Entropy bonus weight in the actor loss (the starting weight with
@@ -440,13 +429,6 @@ pub struct EppoConfig {
     /// repeat from a new hazard on the robots. 0: every cost (the paper).
     #[serde(default)]
     pub repeat_cost_radius: f64,
-    /// What the multiplier integrates on each sampled trajectory (issue 18).
-    #[serde(default)]
-    pub violation_signal: ViolationSignal,
-    /// `violation_signal = "late_rate"`: the share of later episodes over
-    /// budget at which lambda stops rising (the integrator's set point).
-    #[serde(default = "default_lambda_target_rate")]
-    pub lambda_target_rate: f64,
 
     // The loop's shape (issue 20): both together, so merges stay simple.
     /// Collect and learn at once on two threads (`overlap.rs`): an actor
@@ -560,27 +542,6 @@ pub struct PriceChange {
     pub price: f64,
 }
 
-/// The per-trajectory violation g that the multiplier integrates.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum ViolationSignal {
-    /// Eq. (7): max_k (C_k - delta), the worst episode's excess in cost
-    /// units. In a dark room the first, blind episodes keep it positive
-    /// whatever the agent learns, so lambda climbs to its cap on every
-    /// training seed and the cap becomes the setting that decides the run
-    /// (results/eppo_darkroom_budget, runs E1, c6, s2).
-    #[default]
-    WorstExcess,
-    /// The share of the trajectory's later half of episodes (k > K/2) that
-    /// ended over budget, minus `lambda_target_rate`: the quantity the budget
-    /// promises (within budget once the context has taught the task). Bounded
-    /// in [-rate, 1 - rate], it falls below zero once the agent keeps its
-    /// later episodes within budget, so lambda settles instead of reaching
-    /// the cap.
-    LateRate,
-}
-
-/// Absent from a config: lambda stops rising once 5% of later episodes are over budget.
 /// The most environment steps a run may need to reach its last update
 /// (days of collection at the fastest environment's rate).
 const MOST_ENV_STEPS: f64 = 1e10;
@@ -596,27 +557,19 @@ fn ramp_at([from, until]: [u64; 2], env_steps: u64) -> f64 {
     }
 }
 
-fn default_lambda_target_rate() -> f64 {
-    0.05
-}
-
 /// Absent from a config: a tenth of a goal per step once the budget is spent.
 fn default_saute_unsafe_reward() -> f64 {
     -0.1
 }
 
-/// Absent from a config: one SafeDarkRoom cell.
+/// Absent from a config: 20 rounds in the revisit gate's average.
 fn default_constraint_revisit_rounds() -> usize {
     20
 }
 
+/// Absent from a config: one SafeDarkRoom cell.
 fn default_novelty_cell() -> f64 {
     1.0
-}
-
-/// Absent from a config: the PID Lagrangian's usual smoothing.
-fn default_lambda_smoothing() -> f64 {
-    0.9
 }
 
 fn default_entropy_coef_lr() -> f64 {
@@ -665,6 +618,71 @@ pub enum EppoError {
     /// Stopped by SIGINT/SIGTERM after writing a checkpoint.
     #[error("interrupted after update {updates}: checkpoint written to {}", .checkpoint.display())]
     Interrupted { checkpoint: PathBuf, updates: u64 },
+}
+
+/// Settings tried by a ladder, measured as not helping, and removed with
+/// their code: each with the value at which it did nothing (`None`: it
+/// acted only through another retired setting) and the last commit that had
+/// it (`git checkout` it to rerun such a config). A config written before the
+/// removal still loads where it holds one at that value; one that used it is
+/// refused by name.
+pub const RETIRED: [(&str, Option<&str>, &str); 5] = [
+    // The PID Lagrangian (results/eppo_darkroom_budget, issue 18).
+    ("lambda_kp", Some("0.0"), PID_AND_LATE_RATE),
+    ("lambda_kd", Some("0.0"), PID_AND_LATE_RATE),
+    ("lambda_smoothing", None, PID_AND_LATE_RATE),
+    // The late-episode over-budget rate as the multiplier's signal (lr1, lr2).
+    (
+        "violation_signal",
+        Some("\"worst_excess\""),
+        PID_AND_LATE_RATE,
+    ),
+    ("lambda_target_rate", None, PID_AND_LATE_RATE),
+];
+
+const PID_AND_LATE_RATE: &str = "b1f1bdb663c9833aefcfffa79f077dcd3d455b0b";
+
+/// Drops the [`RETIRED`] settings of `table` that hold their inert value;
+/// refuses one that does not, naming it.
+pub fn drop_retired(table: &mut toml::Table) -> Result<(), String> {
+    for (key, inert, commit) in RETIRED {
+        let Some(value) = table.get(key) else {
+            continue;
+        };
+        let inert = inert.map(|text| {
+            toml::from_str::<toml::Table>(&format!("v = {text}"))
+                .expect("RETIRED holds TOML values")["v"]
+                .clone()
+        });
+        let number = |v: &toml::Value| v.as_float().or(v.as_integer().map(|i| i as f64));
+        let did_nothing = match &inert {
+            None => true,
+            Some(inert) => match (number(value), number(inert)) {
+                (Some(a), Some(b)) => a == b,
+                _ => value == inert,
+            },
+        };
+        if !did_nothing {
+            return Err(format!(
+                "{key} = {value} is a setting removed after its runs showed it did not help \
+                 (the ladders under results/ record them): drop it to train without it, or check \
+                 out commit {commit}, the last that had it, to rerun this config as it was"
+            ));
+        }
+        table.remove(key);
+    }
+    Ok(())
+}
+
+impl EppoConfig {
+    /// A config from a TOML table (a preset with its `--set`s, or a run's
+    /// `config.toml`), written before or after the [`RETIRED`] settings went.
+    /// `name` says where the table came from, in errors.
+    pub fn from_table(name: &str, mut table: toml::Table) -> Result<Self, EppoError> {
+        drop_retired(&mut table).map_err(|e| EppoError::Config(format!("{name}: {e}")))?;
+        crate::presets::resolve::<EppoConfig>(name, table)
+            .map_err(|e| EppoError::Config(e.to_string()))
+    }
 }
 
 impl EppoConfig {
@@ -739,14 +757,6 @@ impl EppoConfig {
                 self.hazard_recall_coef,
                 Range::NON_NEGATIVE,
             ),
-            ("lambda_kp", self.lambda_kp, Range::NON_NEGATIVE),
-            ("lambda_target_rate", self.lambda_target_rate, Range::UNIT),
-            ("lambda_kd", self.lambda_kd, Range::NON_NEGATIVE),
-            (
-                "lambda_smoothing",
-                self.lambda_smoothing,
-                Range::UNIT_OPEN_HIGH,
-            ),
             (
                 "dense_reward_coef",
                 self.dense_reward_coef,
@@ -805,10 +815,7 @@ impl EppoConfig {
         if matches!(
             self.penalty,
             PenaltyForm::Saute | PenaltyForm::Excess | PenaltyForm::Terminate
-        ) && (self.lambda_init != 0.0
-            || self.lambda_lr != 0.0
-            || self.lambda_kp != 0.0
-            || self.lambda_kd != 0.0)
+        ) && (self.lambda_init != 0.0 || self.lambda_lr != 0.0)
         {
             let form = match self.penalty {
                 PenaltyForm::Saute => "saute",
@@ -817,8 +824,7 @@ impl EppoConfig {
             };
             return bad(format!(
                 "penalty = \"{form}\" prices the budget in the critics' targets, so the \
-                 multiplier must stay at 0: set lambda_init = 0, lambda_lr = 0, lambda_kp = 0 \
-                 and lambda_kd = 0"
+                 multiplier must stay at 0: set lambda_init = 0 and lambda_lr = 0"
             ));
         }
         if self.over_budget_cost_price > 0.0
@@ -1224,18 +1230,6 @@ impl EppoConfig {
                 }
                 PenaltyForm::Hindsight | PenaltyForm::Hinge => BudgetInTargets::Absent,
             },
-        }
-    }
-
-    /// The multiplier's gains: Eq. (7)'s eta as the integral gain, the PID
-    /// terms, the cap.
-    pub fn multiplier_gains(&self) -> Gains {
-        Gains {
-            ki: self.lambda_lr,
-            kp: self.lambda_kp,
-            kd: self.lambda_kd,
-            smoothing: self.lambda_smoothing,
-            max: self.lambda_max,
         }
     }
 }

@@ -43,14 +43,8 @@
 //!   decaying inside each trajectory, scaled per trajectory by a uniform draw.
 //!
 //! The multiplier follows Eq. (7): lambda <- clip(lambda + eta * mean over the
-//! sampled trajectories of max_k (C_k - delta), 0, lambda_max); with
-//! `lambda_kp` or `lambda_kd` above 0 it is the PID Lagrangian
-//! (`multiplier.rs`), Eq. (7) being its integral term. With
-//! `violation_signal = "late_rate"` it integrates, instead of the worst
-//! episode's excess, the share of later episodes (k > K/2) over budget less a
-//! target rate: the worst of K episodes includes the blind first ones, which
-//! keep Eq. (7)'s signal positive and lambda at its cap on every seed
-//! (results/eppo_darkroom_budget).
+//! sampled trajectories of max_k (C_k - delta), 0, lambda_max)
+//! (`multiplier.rs`).
 //!
 //! Levers for the robots' ladder, off in every preset until a run shows they
 //! help (results/eppo_point_ladder): hindsight task relabelling of replayed
@@ -166,11 +160,11 @@ pub use agent::EppoAgent;
 pub use checkpoint::{drop_replay, recorded_pretrain_tasks};
 pub use collect::{RoundStats, search_rates};
 pub use config::{
-    EppoConfig, EppoError, Exploration, NoveltyBudget, PenaltyForm, PriceChange, ViolationSignal,
-    memory_estimate, parse_device,
+    EppoConfig, EppoError, Exploration, NoveltyBudget, PenaltyForm, PriceChange, memory_estimate,
+    parse_device,
 };
 pub use losses::{UpdateStats, lambda_update};
-pub use multiplier::{ConstraintStart, Gains, Multiplier};
+pub use multiplier::{ConstraintStart, Multiplier};
 pub use net::{EppoNet, NetSpec};
 pub use relabel::{pick_goal, relabel};
 pub use replay::{Replay, Trajectory};
@@ -195,7 +189,7 @@ pub struct Learner {
     pub target_vs: nn::VarStore,
     pub target: EppoNet,
     pub opt: Adam,
-    /// The cost multiplier lambda and its PID state (`multiplier.rs`).
+    /// The cost multiplier lambda (`multiplier.rs`).
     pub multiplier: Multiplier,
     /// When the constraint comes on (`constraint_after_revisit`).
     pub constraint_start: ConstraintStart,
@@ -323,10 +317,7 @@ impl Learner {
         );
         // The multiplier prices the costs the policy really paid: a
         // relabelled episode cut at its new goal holds only part of them.
-        let violations: Vec<f32> = sampled
-            .iter()
-            .map(|t| t.violation(self.cfg.violation_signal, self.cfg.lambda_target_rate))
-            .collect();
+        let violations: Vec<f32> = sampled.iter().map(|t| t.max_violation()).collect();
         self.times.batch += lap(&mut clock);
         let (lv, lc, lp, entropy, diag) = losses(
             &self.net,
@@ -362,7 +353,7 @@ impl Learner {
         self.times.optimizer += lap(&mut clock);
         if self.constrained() {
             self.multiplier
-                .update(&violations, &self.cfg.multiplier_gains());
+                .update(&violations, self.cfg.lambda_lr, self.cfg.lambda_max);
         }
         let entropy_now = entropy.double_value(&[]);
         if let Some(target) = self.cfg.target_entropy {

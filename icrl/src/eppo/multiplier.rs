@@ -1,71 +1,29 @@
-//! The cost multiplier lambda. Eq. (7) is an integrator,
+//! The cost multiplier lambda of Eq. (7), an integrator,
 //! lambda <- clip(lambda + eta g, 0, lambda_max), with g the batch mean of
-//! max_k (C_k - delta) (or, with `violation_signal = "late_rate"`, of the
-//! share of later episodes over budget less its target). An
-//! integrator overshoots: it keeps rising until the cost is under budget, then
-//! takes as long to unwind, and on some training seeds that stops search
-//! before the cost falls (issue 18, run E1). The PID Lagrangian (Stooke,
-//! Achiam and Abbeel, ICML 2020) adds a proportional and a derivative term on
-//! the smoothed violation, which respond at once and damp the overshoot:
-//!
-//! lambda = clip(I + kp e + kd max(0, e - e_prev), 0, lambda_max),
-//! I <- clip(I + ki g, 0, lambda_max), e <- a e + (1 - a) g,
-//!
-//! with ki = `lambda_lr`. With kp = kd = 0 it is Eq. (7) exactly.
+//! each trajectory's max_k (C_k - delta), and when the constraint comes on.
+//! (A PID Lagrangian and a late-episode violation signal were tried on the
+//! grid and removed: `config.rs::RETIRED`.)
 
 use serde::{Deserialize, Serialize};
 
-use super::losses::mean_violation;
-
-/// The gains and limits, read from the config.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Gains {
-    /// Integral gain (Eq. 7's eta).
-    pub ki: f64,
-    /// Proportional gain on the smoothed violation.
-    pub kp: f64,
-    /// Derivative gain on the smoothed violation's rise.
-    pub kd: f64,
-    /// Smoothing of the violation for the P and D terms (EMA weight of the past).
-    pub smoothing: f64,
-    /// The cap lambda_max.
-    pub max: f64,
-}
+use super::losses::lambda_update;
 
 /// The multiplier's state, checkpointed with the run.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Multiplier {
     /// lambda as the losses use it.
     pub lambda: f64,
-    /// The integral term I (equal to lambda when kp = kd = 0).
-    pub integral: f64,
-    /// The smoothed violation e.
-    pub smoothed: f64,
 }
 
 impl Multiplier {
-    /// A multiplier starting at `lambda` (the integral starts there too).
     pub fn new(lambda: f64) -> Self {
-        Multiplier {
-            lambda,
-            integral: lambda,
-            smoothed: 0.0,
-        }
+        Multiplier { lambda }
     }
 
-    /// One step on a batch's per-trajectory violations (Eq. 7's max_k (C_k -
-    /// delta), or the late over-budget rate less its target); an empty batch
-    /// changes nothing.
-    pub fn update(&mut self, violations: &[f32], gains: &Gains) {
-        let Some(g) = mean_violation(violations) else {
-            return;
-        };
-        self.integral = (self.integral + gains.ki * g).clamp(0.0, gains.max);
-        let previous = self.smoothed;
-        self.smoothed = gains.smoothing * self.smoothed + (1.0 - gains.smoothing) * g;
-        let rise = (self.smoothed - previous).max(0.0);
-        self.lambda =
-            (self.integral + gains.kp * self.smoothed + gains.kd * rise).clamp(0.0, gains.max);
+    /// Eq. (7)'s step on a batch's per-trajectory violations with step size
+    /// `eta` and cap `max`; an empty batch changes nothing.
+    pub fn update(&mut self, violations: &[f32], eta: f64, max: f64) {
+        self.lambda = lambda_update(self.lambda, violations, eta, max);
     }
 }
 

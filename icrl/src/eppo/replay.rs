@@ -12,7 +12,7 @@ use tch::{Device, Tensor};
 
 use safety_envs::{GoalRule, GoalShown};
 
-use super::config::{EppoConfig, NoveltyBudget, ViolationSignal};
+use super::config::{EppoConfig, NoveltyBudget};
 use super::net::NetSpec;
 use crate::signals::{CostMemory, position_cell};
 use crate::tokens::{self, StepToken};
@@ -80,24 +80,6 @@ impl Trajectory {
     /// Per episode, whether its cost passed the budget (the violation flag).
     pub fn episodes_over_budget(&self) -> impl Iterator<Item = bool> + '_ {
         self.episode_costs.iter().map(|&c| c > self.budget)
-    }
-
-    /// The share of episodes k > K/2 whose cost exceeded the budget.
-    pub fn late_over_budget_rate(&self) -> f32 {
-        let k = self.episode_costs.len();
-        if k == 0 {
-            return 0.0;
-        }
-        let late = self.episodes_over_budget().skip(k / 2).filter(|&over| over);
-        late.count() as f32 / (k - k / 2) as f32
-    }
-
-    /// The trajectory's term in the multiplier's update under `signal`.
-    pub fn violation(&self, signal: ViolationSignal, target_rate: f64) -> f32 {
-        match signal {
-            ViolationSignal::WorstExcess => self.max_violation(),
-            ViolationSignal::LateRate => self.late_over_budget_rate() - target_rate as f32,
-        }
     }
 }
 

@@ -676,62 +676,6 @@ fn an_older_novelty_within_budget_flag_reads_as_the_gate() {
 }
 
 #[test]
-fn the_pid_multiplier_is_eq_7_without_its_p_and_d_terms_and_damps_with_them() {
-    let integrator = Gains {
-        ki: 0.1,
-        kp: 0.0,
-        kd: 0.0,
-        smoothing: 0.9,
-        max: 1.5,
-    };
-    let batches: Vec<Vec<f32>> = (0..60)
-        .map(|i| {
-            if i < 30 {
-                vec![3.0, -1.0]
-            } else {
-                vec![-2.0, -0.5]
-            }
-        })
-        .collect();
-    let (mut m, mut lambda) = (Multiplier::new(0.2), 0.2);
-    for b in &batches {
-        m.update(b, &integrator);
-        lambda = lambda_update(lambda, b, 0.1, 1.5);
-        assert_eq!(m.lambda, lambda, "Eq. (7) exactly");
-    }
-    // With P and D: lambda answers a violation at once, above the integral,
-    // and falls below it as soon as the cost is under budget.
-    let pid = Gains {
-        kp: 0.5,
-        kd: 1.0,
-        ..integrator
-    };
-    let mut m = Multiplier::new(0.0);
-    m.update(&[1.0], &pid);
-    assert!(m.lambda > m.integral, "{m:?}");
-    assert!((m.integral - 0.1).abs() < 1e-12);
-    // kp e + kd rise, e = 0.1 after one step from 0.
-    assert!(
-        (m.lambda - (0.1 + 0.5 * 0.1 + 1.0 * 0.1)).abs() < 1e-9,
-        "{m:?}"
-    );
-    for _ in 0..20 {
-        m.update(&[1.0], &pid);
-    }
-    assert!(m.lambda <= 1.5, "capped: {m:?}");
-    let before = m;
-    // The smoothed violation turns negative after three batches under budget.
-    for _ in 0..3 {
-        m.update(&[-3.0], &pid);
-    }
-    assert!(m.smoothed < 0.0, "{m:?}");
-    assert!(m.lambda < m.integral, "damped below the integral: {m:?}");
-    assert!(m.integral < before.integral);
-    m.update(&[], &pid);
-    assert!(m.lambda >= 0.0);
-}
-
-#[test]
 fn lambda_rises_falls_and_respects_the_cap() {
     let mut lambda = 0.0;
     let mut seen = vec![];
@@ -745,6 +689,12 @@ fn lambda_rises_falls_and_respects_the_cap() {
     );
     assert_eq!(lambda, 1.5, "capped");
     assert!(seen.iter().all(|&l| l <= 1.5));
+    // The learner's multiplier takes the same step, and none on an empty batch.
+    let mut m = Multiplier::new(0.2);
+    m.update(&[3.0, -1.0, 4.0], 0.1, 1.5);
+    assert_eq!(m.lambda, lambda_update(0.2, &[3.0, -1.0, 4.0], 0.1, 1.5));
+    m.update(&[], 0.1, 1.5);
+    assert_eq!(m.lambda, lambda_update(0.2, &[3.0, -1.0, 4.0], 0.1, 1.5));
     for _ in 0..50 {
         lambda = lambda_update(lambda, &[-2.0, -0.5], 0.1, 1.5);
     }
@@ -759,38 +709,6 @@ fn lambda_rises_falls_and_respects_the_cap() {
         ..Default::default()
     };
     assert_eq!(t.max_violation(), 3.0);
-}
-
-/// The late-rate signal counts only episodes k > K/2 and subtracts its
-/// target, so blind early episodes cannot hold lambda up, and a trajectory
-/// whose later episodes keep the budget pulls lambda down.
-#[test]
-fn late_rate_signal_ignores_the_blind_first_half() {
-    let t = Trajectory {
-        budget: 2.0,
-        episode_costs: vec![9.0, 9.0, 0.0, 3.0],
-        ..Default::default()
-    };
-    assert_eq!(t.late_over_budget_rate(), 0.5, "episode 4 of 3..4 over");
-    assert_eq!(t.violation(ViolationSignal::WorstExcess, 0.05), 7.0);
-    assert!((t.violation(ViolationSignal::LateRate, 0.05) - 0.45).abs() < 1e-6);
-    let kept = Trajectory {
-        budget: 2.0,
-        episode_costs: vec![9.0, 9.0, 9.0, 2.0, 1.0, 0.0],
-        ..Default::default()
-    };
-    assert!((kept.violation(ViolationSignal::LateRate, 0.05) + 0.05).abs() < 1e-6);
-    let mut m = Multiplier::new(0.5);
-    let gains = Gains {
-        ki: 0.1,
-        kp: 0.0,
-        kd: 0.0,
-        smoothing: 0.9,
-        max: 1.0,
-    };
-    m.update(&[kept.violation(ViolationSignal::LateRate, 0.05)], &gains);
-    assert!(m.lambda < 0.5, "falls while later episodes keep the budget");
-    assert!(kept.max_violation() > 0.0, "where Eq. (7) would still rise");
 }
 
 /// A batch collected by a tiny SafeDarkRoom learner whose actor pays the
@@ -876,4 +794,78 @@ fn the_hinge_charges_predicted_cost_past_the_remaining_budget_only() {
         (policy_loss(&batch, 5.0) - rich_0).abs() > 1e-4,
         "a spent budget: every predicted cost is charged"
     );
+}
+
+/// The retired multiplier settings (`config::RETIRED`): a committed config
+/// that holds them where they did nothing loads as it did, one that used
+/// them is refused by name with the commit that had them, and no committed
+/// config is refused for them otherwise.
+#[test]
+fn configs_from_before_the_retirement_load_or_are_refused_by_name() {
+    use super::config::{RETIRED, drop_retired};
+    let results = Path::new(env!("CARGO_MANIFEST_DIR")).join("../results");
+    let table = |rel: &str| -> toml::Table {
+        std::fs::read_to_string(results.join(rel))
+            .unwrap()
+            .parse()
+            .unwrap()
+    };
+    let pe1 = table("eppo_point_ladder/pe1_scratch_eq7_gate0.7/config.toml");
+    assert!(pe1.contains_key("lambda_kp") && pe1.contains_key("violation_signal"));
+    let loaded = EppoConfig::from_table("pe1", pe1.clone()).unwrap();
+    assert_eq!(loaded.lambda_max, 1.0);
+    let mut stripped = pe1.clone();
+    for (key, _, _) in RETIRED {
+        stripped.remove(key);
+    }
+    let plain: EppoConfig = crate::presets::resolve("pe1", stripped).unwrap();
+    assert_eq!(format!("{loaded:?}"), format!("{plain:?}"), "the same config");
+    for (key, value) in [("lambda_kp", "0.5"), ("violation_signal", "\"late_rate\"")] {
+        let mut used = pe1.clone();
+        crate::presets::apply_overrides(&mut used, &[format!("{key}={value}")]).unwrap();
+        let err = EppoConfig::from_table("pe1", used).unwrap_err().to_string();
+        assert!(err.contains(key) && err.contains(RETIRED[0].2), "{err}");
+    }
+    let late = table("eppo_darkroom_budget/lr1_late_rate/config.toml");
+    let err = EppoConfig::from_table("lr1", late).unwrap_err().to_string();
+    assert!(err.contains("violation_signal = \"late_rate\""), "{err}");
+    // Every committed EPPO config loads, or is refused by a retired
+    // setting's name, or fails for a reason that is not one of them (an
+    // older format): never as an unknown retired field.
+    let mut configs = Vec::new();
+    let mut dirs = vec![results.clone()];
+    while let Some(dir) = dirs.pop() {
+        for entry in std::fs::read_dir(&dir).unwrap().flatten() {
+            let path = entry.path();
+            if path.is_dir() {
+                dirs.push(path);
+            } else if path.file_name().is_some_and(|n| n == "config.toml") {
+                configs.push(path);
+            }
+        }
+    }
+    let mut loaded = 0;
+    for path in &configs {
+        let Ok(t) = std::fs::read_to_string(path).unwrap().parse::<toml::Table>() else {
+            continue;
+        };
+        if !t.contains_key("n_critics") {
+            continue; // not an EPPO config
+        }
+        match EppoConfig::from_table("c", t.clone()) {
+            Ok(_) => loaded += 1,
+            Err(e) => {
+                let e = e.to_string();
+                let named = RETIRED.iter().any(|(k, _, _)| e.contains(&format!("{k} = ")));
+                let mut without = t.clone();
+                assert_eq!(named, drop_retired(&mut without).is_err(), "{e}");
+                assert!(
+                    named || RETIRED.iter().all(|(k, _, _)| !e.contains(k)),
+                    "{}: {e}",
+                    path.display()
+                );
+            }
+        }
+    }
+    assert!(loaded > 100, "{loaded} of {} configs load", configs.len());
 }
