@@ -123,19 +123,6 @@ pub struct EppoConfig {
     /// Step size of the entropy weight's log-space update.
     #[serde(default = "default_entropy_coef_lr")]
     pub entropy_coef_lr: f64,
-    /// The actor reads a detached trajectory encoding, so that only the
-    /// critics' losses shape the shared transformer (SAC-AE and DrQ stop the
-    /// actor's gradient at the encoder for stability). false: the paper's and
-    /// AMAGO's shared encoder, trained by the actor's loss too.
-    #[serde(default)]
-    pub actor_detach_encoder: bool,
-    /// Weight of AMAGO's filtered behaviour cloning in the actor loss:
-    /// -1[A(h_t, a_t) > 0] log pi(a_t | h_t) on the replayed actions, with
-    /// A = Q(h_t, a_t) - E_pi Q(h_t, .) from the reward critics (mean over
-    /// the ensemble, no gradient). It anchors the actor to replayed actions
-    /// that beat its own (0: off, the paper's Lp alone; AMAGO uses 0.1).
-    #[serde(default)]
-    pub bc_coef: f64,
     /// Rewards are multiplied by this in the TD targets and the tokens.
     pub reward_scale: f64,
     /// Exploration at a trajectory's first step, at the start of training:
@@ -311,9 +298,6 @@ pub struct EppoConfig {
     /// cell of the `search_new_cells` metric.
     #[serde(default = "default_novelty_cell")]
     pub novelty_cell: f64,
-    /// Updates over which `novelty_bonus` anneals linearly to 0 (0: constant).
-    #[serde(default)]
-    pub novelty_anneal_updates: u64,
     /// The bonus rises with the episode index k (from 0) of the arrival:
     /// `novelty_bonus x (1 + novelty_rise x k)`. Late in a search the goal
     /// is more likely to lie in ground not yet covered, which centre-oriented
@@ -626,7 +610,7 @@ pub enum EppoError {
 /// it (`git checkout` it to rerun such a config). A config written before the
 /// removal still loads where it holds one at that value; one that used it is
 /// refused by name.
-pub const RETIRED: [(&str, Option<&str>, &str); 5] = [
+pub const RETIRED: [(&str, Option<&str>, &str); 8] = [
     // The PID Lagrangian (results/eppo_darkroom_budget, issue 18).
     ("lambda_kp", Some("0.0"), PID_AND_LATE_RATE),
     ("lambda_kd", Some("0.0"), PID_AND_LATE_RATE),
@@ -638,9 +622,16 @@ pub const RETIRED: [(&str, Option<&str>, &str); 5] = [
         PID_AND_LATE_RATE,
     ),
     ("lambda_target_rate", None, PID_AND_LATE_RATE),
+    // The actor's loss reshaped (results/eppo_ladder r3 and the Point ladder):
+    // its encoder detached, and AMAGO's filtered behaviour cloning.
+    ("actor_detach_encoder", Some("false"), ACTOR_AND_ANNEAL),
+    ("bc_coef", Some("0.0"), ACTOR_AND_ANNEAL),
+    // The novelty bonus annealed to 0 over training (Point ps6).
+    ("novelty_anneal_updates", Some("0"), ACTOR_AND_ANNEAL),
 ];
 
 const PID_AND_LATE_RATE: &str = "b1f1bdb663c9833aefcfffa79f077dcd3d455b0b";
+const ACTOR_AND_ANNEAL: &str = "db40554803feeb6dadd0adc8842796b03fa193c4";
 
 /// Drops the [`RETIRED`] settings of `table` that hold their inert value;
 /// refuses one that does not, naming it.
@@ -737,7 +728,6 @@ impl EppoConfig {
             ("critic_weight", self.critic_weight, Range::POSITIVE),
             ("entropy_coef", self.entropy_coef, Range::NON_NEGATIVE),
             ("entropy_coef_lr", self.entropy_coef_lr, Range::NON_NEGATIVE),
-            ("bc_coef", self.bc_coef, Range::NON_NEGATIVE),
             // Scaled rewards go into float32 tokens: keep them far from overflow.
             (
                 "reward_scale",
@@ -1170,14 +1160,6 @@ impl EppoConfig {
         }
     }
 
-    /// The novelty bonus's weight after `updates` updates (annealed).
-    pub fn novelty_weight(&self, updates: u64) -> f64 {
-        match self.novelty_anneal_updates {
-            0 => self.novelty_bonus,
-            n => self.novelty_bonus * (1.0 - updates as f64 / n as f64).max(0.0),
-        }
-    }
-
     /// The price per unit of excess cost `updates_constrained` updates after
     /// the constraint came on (`over_budget_price_schedule`).
     pub fn over_budget_price(&self, updates_constrained: u64) -> f64 {
@@ -1207,13 +1189,13 @@ impl EppoConfig {
     pub(super) fn shaping(&self, updates: u64, constrained_since: Option<u64>) -> Shaping {
         let Some(since) = constrained_since else {
             return Shaping {
-                novelty: self.novelty_weight(updates) as f32,
+                novelty: self.novelty_bonus as f32,
                 ..Shaping::default()
             };
         };
         let cost_price = self.over_budget_price(updates.saturating_sub(since)) as f32;
         Shaping {
-            novelty: self.novelty_weight(updates) as f32,
+            novelty: self.novelty_bonus as f32,
             budget: match self.penalty {
                 PenaltyForm::Saute => BudgetInTargets::OverBudget(OverBudget {
                     replaced_reward: Some(self.saute_unsafe_reward as f32),

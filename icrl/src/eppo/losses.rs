@@ -6,7 +6,7 @@ use serde::Serialize;
 use tch::{Device, Kind, Tensor, nn};
 
 use super::config::{EppoConfig, EppoError, PenaltyForm};
-use super::net::{EppoNet, Head, tanh_gaussian_log_prob, tanh_gaussian_sample};
+use super::net::{EppoNet, Head, tanh_gaussian_sample};
 use super::replay::Batch;
 
 /// Scalars of one update.
@@ -299,20 +299,11 @@ struct ActorTerms {
     q_taken: Tensor,
     qc_taken: Tensor,
     qn_taken: Option<Tensor>,
-    /// Lp (filtered BC included) and the policy entropy, masked means.
+    /// Lp and the policy entropy, masked means.
     policy_loss: Tensor,
     entropy: Tensor,
     /// Continuous actions: the actor's mean log-std.
     log_std_mean: Option<Tensor>,
-}
-
-/// The encoding the actor reads: detached with `actor_detach_encoder`.
-fn actor_input(h: &Tensor, cfg: &EppoConfig) -> Tensor {
-    if cfg.actor_detach_encoder {
-        h.detach()
-    } else {
-        h.shallow_clone()
-    }
 }
 
 /// The novelty critics' weight in the actor, (B, L): 1 on the steps whose
@@ -322,7 +313,7 @@ fn searching(batch: &Batch) -> Tensor {
 }
 
 /// Discrete actions: Lp as the expectation of -Q + lambda v_e Qc under the
-/// actor's own distribution, minus the entropy bonus, plus filtered BC; Q
+/// actor's own distribution, minus the entropy bonus; Q
 /// holds the novelty critics' value while searching.
 fn discrete_actor(
     net: &EppoNet,
@@ -349,7 +340,7 @@ fn discrete_actor(
         .map(|qn| qn.gather(3, &idx, false).squeeze_dim(3)); // (B, L, C)
     // Actor: expectation of -Q + lambda v_e Qc under its own distribution;
     // critic values are constants here (detached).
-    let logits = net.actor.forward(&actor_input(h, cfg)); // (B, L, A)
+    let logits = net.actor.forward(h); // (B, L, A)
     let logp = logits.log_softmax(-1, Kind::Float);
     let pi = logp.exp();
     let mut q = q_all.detach().amin(2, false); // (B, L, A)
@@ -366,18 +357,8 @@ fn discrete_actor(
     ); // (B, L, A)
     let per_action = q.neg() + paid * penalty; // (B, L, A)
     let entropy = (&pi * &logp).sum_dim_intlist(-1, false, Kind::Float).neg(); // (B, L)
-    let mut objective =
+    let objective =
         (&pi * per_action).sum_dim_intlist(-1, false, Kind::Float) - &entropy * entropy_coef;
-    if cfg.bc_coef > 0.0 {
-        // Filtered BC: A = Q(a_t) - sum_a pi(a) Q(a), mean over critics.
-        let q_mean = q_all.detach().mean_dim(2, false, Kind::Float); // (B, L, A)
-        let idx = batch.actions.unsqueeze(-1); // (B, L, 1)
-        let q_data = q_mean.gather(2, &idx, false).squeeze_dim(2); // (B, L)
-        let v = (&pi.detach() * &q_mean).sum_dim_intlist(-1, false, Kind::Float); // (B, L)
-        let keep = (q_data - v).gt(0.0).to_kind(Kind::Float); // (B, L)
-        let logp_data = logp.gather(2, &idx, false).squeeze_dim(2); // (B, L)
-        objective -= keep * logp_data * cfg.bc_coef;
-    }
     ActorTerms {
         q_taken,
         qc_taken,
@@ -390,7 +371,7 @@ fn discrete_actor(
 
 /// Continuous actions: Lp on a reparameterised tanh-Gaussian sample a_hat,
 /// judged by frozen critics (the novelty critics' value added while
-/// searching), plus filtered BC.
+/// searching).
 fn continuous_actor(
     net: &EppoNet,
     h: &Tensor,
@@ -405,7 +386,7 @@ fn continuous_actor(
         .novelty_critic
         .as_ref()
         .map(|head| net.critic_sa(head, h, &batch.actions, false)); // (B, L, C)
-    let (mean, log_std) = net.gaussian(&actor_input(h, cfg));
+    let (mean, log_std) = net.gaussian(h);
     let log_std_mean = Some(masked_mean(
         &log_std.detach().mean_dim(-1, false, Kind::Float),
         &batch.valid,
@@ -429,18 +410,7 @@ fn continuous_actor(
         .mean_dim(-1, false, Kind::Float); // (B, L)
     let penalty = lambda * cfg.reward_scale;
     let paid = penalised_cost(&qc, &batch.violated, &batch.ctg, cfg.penalty); // (B, L)
-    let mut objective = q.neg() + paid * penalty + &log_prob * entropy_coef;
-    if cfg.bc_coef > 0.0 {
-        // Filtered BC: A = Q(a_t) - Q(a_hat) (one sample of E_pi),
-        // mean over critics, no gradient anywhere in the filter.
-        let keep = tch::no_grad(|| {
-            let q_data = q_taken.mean_dim(-1, false, Kind::Float); // (B, L)
-            let v = q_hat.detach().mean_dim(-1, false, Kind::Float); // (B, L)
-            (q_data - v).gt(0.0).to_kind(Kind::Float)
-        });
-        let logp_data = tanh_gaussian_log_prob(&mean, &log_std, &batch.actions); // (B, L)
-        objective -= keep * logp_data * cfg.bc_coef;
-    }
+    let objective = q.neg() + paid * penalty + &log_prob * entropy_coef;
     ActorTerms {
         q_taken,
         qc_taken,

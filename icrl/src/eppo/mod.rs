@@ -59,9 +59,7 @@
 //! (`hazard_recall_coef`), observations standardised by a random policy's
 //! statistics (`standardise_observations`), SAC's automatic temperature
 //! (`target_entropy`: the entropy weight tuned so that a continuous actor
-//! cannot collapse onto its action bounds), an actor that reads a detached
-//! trajectory encoding (`actor_detach_encoder`: only the critics shape the
-//! shared transformer), a sinusoid of each step's index within its episode
+//! cannot collapse onto its action bounds), a sinusoid of each step's index within its episode
 //! added to the token's embedding (`episode_positions`: every episode starts
 //! from the same pose, so the same moment of a successful episode is the
 //! one to recall) and the goal in the observation (`goal_in_observation`:
@@ -73,8 +71,7 @@
 //! Levers for the budget ladder (results/eppo_darkroom_budget), likewise off
 //! until measured: behaviour noise capped once a trajectory has found its goal
 //! (`eps_after_success`), a critic-only bonus for cells new to the trajectory
-//! until its first success (`novelty_bonus`, annealed over
-//! `novelty_anneal_updates`, rising with the episode index by
+//! until its first success (`novelty_bonus`, rising with the episode index by
 //! `novelty_rise`, scaled by the distance from the episode's start with
 //! `novelty_distance_scale`; gated by the budget with `novelty_budget`:
 //! withheld past it, or scaled by the share of it left; learned by critics

@@ -345,16 +345,3 @@ pub(super) fn tanh_gaussian_sample(
     let log_prob = (log_normal - log_det).sum_dim_intlist(-1, false, Kind::Float);
     (a, log_prob)
 }
-
-/// log pi(a | mean, log_std) of given squashed actions a in [-1, 1]^A, (.., A)
-/// -> (..): the Gaussian density of u = atanh(a) less log(1 - a^2). Actions
-/// are pulled 1e-6 inside the box first (a stored f32 action can be exactly
-/// +-1, where atanh is infinite).
-pub(super) fn tanh_gaussian_log_prob(mean: &Tensor, log_std: &Tensor, a: &Tensor) -> Tensor {
-    let a = a.clamp(-1.0 + 1e-6, 1.0 - 1e-6);
-    let u = ((&a + 1.0) / (a.neg() + 1.0)).log() * 0.5; // atanh(a)
-    let z = (u - mean) / log_std.exp();
-    let log_normal = (z.square() * -0.5) - log_std - 0.5 * (2.0 * std::f64::consts::PI).ln();
-    let log_det = (a.square().neg() + (1.0 + 1e-6)).log();
-    (log_normal - log_det).sum_dim_intlist(-1, false, Kind::Float)
-}

@@ -392,14 +392,6 @@ fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
     );
     outward.novelty_distance_scale = -1.0;
     assert!(refused(&outward, "novelty_distance_scale"));
-    // Annealed linearly to zero, then held there.
-    let mut cfg = tiny();
-    cfg.novelty_bonus = 0.2;
-    assert_eq!(cfg.novelty_weight(500), 0.2, "no anneal: constant");
-    cfg.novelty_anneal_updates = 1000;
-    assert!((cfg.novelty_weight(500) - 0.1).abs() < 1e-12);
-    assert_eq!(cfg.novelty_weight(1000), 0.0);
-    assert_eq!(cfg.novelty_weight(5000), 0.0);
 }
 
 /// With novelty critics, the bonus a step's reward would carry moves into

@@ -819,7 +819,11 @@ fn configs_from_before_the_retirement_load_or_are_refused_by_name() {
         stripped.remove(key);
     }
     let plain: EppoConfig = crate::presets::resolve("pe1", stripped).unwrap();
-    assert_eq!(format!("{loaded:?}"), format!("{plain:?}"), "the same config");
+    assert_eq!(
+        format!("{loaded:?}"),
+        format!("{plain:?}"),
+        "the same config"
+    );
     for (key, value) in [("lambda_kp", "0.5"), ("violation_signal", "\"late_rate\"")] {
         let mut used = pe1.clone();
         crate::presets::apply_overrides(&mut used, &[format!("{key}={value}")]).unwrap();
@@ -846,7 +850,10 @@ fn configs_from_before_the_retirement_load_or_are_refused_by_name() {
     }
     let mut loaded = 0;
     for path in &configs {
-        let Ok(t) = std::fs::read_to_string(path).unwrap().parse::<toml::Table>() else {
+        let Ok(t) = std::fs::read_to_string(path)
+            .unwrap()
+            .parse::<toml::Table>()
+        else {
             continue;
         };
         if !t.contains_key("n_critics") {
@@ -856,7 +863,9 @@ fn configs_from_before_the_retirement_load_or_are_refused_by_name() {
             Ok(_) => loaded += 1,
             Err(e) => {
                 let e = e.to_string();
-                let named = RETIRED.iter().any(|(k, _, _)| e.contains(&format!("{k} = ")));
+                let named = RETIRED
+                    .iter()
+                    .any(|(k, _, _)| e.contains(&format!("{k} = ")));
                 let mut without = t.clone();
                 assert_eq!(named, drop_retired(&mut without).is_err(), "{e}");
                 assert!(

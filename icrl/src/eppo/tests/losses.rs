@@ -1,5 +1,5 @@
 //! The losses and their masks on fixed batches: the critics, the entropy
-//! weight, n-step targets, the tanh-Gaussian policy, filtered BC.
+//! weight, n-step targets, the tanh-Gaussian policy.
 
 use super::*;
 
@@ -443,15 +443,6 @@ fn continuous_shapes_and_gradients() {
         grad_sum("enc_1.weight") > 0.0,
         "shared: Lp reaches the encoder"
     );
-    // With the encoder detached for the actor, Lp moves the actor alone.
-    let mut detached = cfg.clone();
-    detached.actor_detach_encoder = true;
-    opt.zero_grad();
-    let (_, _, lp_detached, ..) =
-        losses(&net, &target, &batch, 1.0, cfg.entropy_coef, &detached).unwrap();
-    lp_detached.backward();
-    assert_eq!(grad_sum("enc_1.weight"), 0.0);
-    assert!(grad_sum("actor.l1.weight") > 0.0);
     let (lv2, lc2, lp2, ..) = losses(&net, &target, &batch, 1.0, cfg.entropy_coef, &cfg).unwrap();
     assert!(opt.backward_step(&(lv2 + lc2 + lp2)) > 0.0);
     assert!(lv.double_value(&[]).is_finite() && lc.double_value(&[]).is_finite());
@@ -474,105 +465,6 @@ fn continuous_shapes_and_gradients() {
     assert_eq!(v.len(), 4);
     assert!(v.iter().all(|x| (-1.0..=1.0).contains(x)));
 }
-
-#[test]
-fn tanh_gaussian_log_prob_matches_the_sampler() {
-    let randn = || Tensor::randn([4, 5, 2], (Kind::Float, Device::Cpu));
-    let (mean, log_std, noise) = crate::torch_rng::seeded(3, || (randn(), randn(), randn()));
-    let log_std = log_std * 0.5 - 0.5;
-    let (a, want) = tanh_gaussian_sample(&mean, &log_std, &noise);
-    let got = tanh_gaussian_log_prob(&mean, &log_std, &a);
-    let err = (got - want).abs().max().double_value(&[]);
-    assert!(err < 1e-2, "max |log pi difference| {err}");
-    // Saturated f32 actions (exactly +-1) stay finite.
-    let edge = Tensor::from_slice(&[1.0f32, -1.0]).view([1, 2]);
-    let lp = tanh_gaussian_log_prob(
-        &mean.narrow(0, 0, 1).narrow(1, 0, 1).view([1, 2]),
-        &log_std.narrow(0, 0, 1).narrow(1, 0, 1).view([1, 2]),
-        &edge,
-    );
-    assert!(lp.double_value(&[0]).is_finite());
-}
-
-#[test]
-fn filtered_bc_raises_the_log_prob_of_kept_replayed_actions() {
-    for discrete in [true, false] {
-        let (mut learner, mut venv) = tiny_learner(2);
-        learner.collect(&mut venv).unwrap();
-        let trajs: Vec<&Trajectory> = learner.replay.trajectories.iter().collect();
-        let mut rng = ChaCha8Rng::seed_from_u64(0);
-        let mut cfg = learner.cfg.clone();
-        cfg.entropy_coef = 0.0;
-        let (batch, net, target, vs) = if discrete {
-            let batch = unshaped_batch(&trajs, &cfg, &learner.spec, &mut rng);
-            let vs = nn::VarStore::new(Device::Cpu);
-            let net = EppoNet::new(vs.root(), &cfg, &learner.spec).unwrap();
-            let tvs = nn::VarStore::new(Device::Cpu);
-            let target = EppoNet::new(tvs.root(), &cfg, &learner.spec).unwrap();
-            (batch, net, target, vs)
-        } else {
-            // The same steps with a 2-D action in [-1, 1] per step.
-            let spec = NetSpec {
-                n_actions: None,
-                act_low: vec![-1.0, -1.0],
-                act_high: vec![1.0, 1.0],
-                ..learner.spec.clone()
-            };
-            let owned: Vec<Trajectory> = trajs
-                .iter()
-                .map(|t| {
-                    let mut t = (*t).clone();
-                    t.actions = (0..t.len() * 2)
-                        .map(|i| (i as f32 * 0.7).sin() * 0.9)
-                        .collect();
-                    t.action_idx.clear();
-                    t
-                })
-                .collect();
-            let refs: Vec<&Trajectory> = owned.iter().collect();
-            let batch = unshaped_batch(&refs, &cfg, &spec, &mut rng);
-            let vs = nn::VarStore::new(Device::Cpu);
-            let net = EppoNet::new(vs.root(), &cfg, &spec).unwrap();
-            let tvs = nn::VarStore::new(Device::Cpu);
-            let target = EppoNet::new(tvs.root(), &cfg, &spec).unwrap();
-            (batch, net, target, vs)
-        };
-        // The BC term alone: Lp(bc = 1) - Lp(bc = 0) under the same noise.
-        let bc_term = || {
-            let mut with = cfg.clone();
-            with.bc_coef = 1.0;
-            let (_, _, a, ..) = crate::torch_rng::seeded(0, || {
-                losses(&net, &target, &batch, 0.0, with.entropy_coef, &with)
-            })
-            .unwrap();
-            let (_, _, b, ..) = crate::torch_rng::seeded(0, || {
-                losses(&net, &target, &batch, 0.0, cfg.entropy_coef, &cfg)
-            })
-            .unwrap();
-            a - b
-        };
-        let first = bc_term().double_value(&[]);
-        let mut opt = Adam::new(
-            &vs,
-            AdamConfig {
-                lr: 1e-2,
-                beta1: 0.9,
-                beta2: 0.99,
-                eps: 1e-8,
-                grad_clip: None,
-            },
-        );
-        for _ in 0..30 {
-            opt.backward_step(&bc_term());
-        }
-        let last = bc_term().double_value(&[]);
-        assert!(
-            last < first - 1e-3,
-            "discrete {discrete}: BC term {first} -> {last} (-mean keep * log pi must fall)"
-        );
-    }
-}
-
 #[test]
 fn n_step_targets_sum_rewards_until_the_bootstrap_stops() {
     let t = |v: &[f32]| Tensor::from_slice(v).view([1, v.len() as i64]);

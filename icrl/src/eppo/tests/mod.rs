@@ -21,7 +21,6 @@ use super::losses::{
     goal_recall_loss, hazard_recall_loss, losses, n_step_targets, penalised_cost,
     tuned_entropy_coef,
 };
-use super::net::{tanh_gaussian_log_prob, tanh_gaussian_sample};
 use super::replay::{
     Batch, BudgetInTargets, OverBudget, Shaping, make_batch, novel_arrivals, repeated_costs,
 };
