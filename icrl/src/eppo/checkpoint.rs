@@ -274,9 +274,6 @@ pub(super) fn model_manifest(cfg: &EppoConfig, spec: &NetSpec) -> serde_json::Va
     if cfg.goal_recall_coef > 0.0 {
         manifest["goal_recall_head"] = true.into();
     }
-    if cfg.hazard_recall_coef > 0.0 {
-        manifest["hazard_recall_head"] = true.into();
-    }
     if cfg.novelty_critic {
         manifest["novelty_critic"] = true.into();
     }

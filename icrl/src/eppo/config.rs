@@ -202,16 +202,6 @@ pub struct EppoConfig {
     /// policy never reads it. 0: off (the paper).
     #[serde(default)]
     pub goal_recall_coef: f64,
-    /// An auxiliary loss for pretraining only, the goal recall's twin for
-    /// costs: a head reads off h_t where the nearest cost paid earlier in
-    /// the window was (its position less the agent's, from the observation
-    /// the cost arrived with), at every step after the window's first cost,
-    /// weighted by this. With lidar off a hazard is met only by paying for
-    /// it, and avoiding it later needs its place held in the context, which
-    /// nothing else in training asks for (results/eppo_point_ladder). The
-    /// head adds to the checkpoint; the policy never reads it. 0: off.
-    #[serde(default)]
-    pub hazard_recall_coef: f64,
     /// Standardise the observation entries without finite bounds (Point and
     /// Car: position, sensors) by the mean and standard deviation of a
     /// random policy's observations on 20 pretraining tasks, frozen in the
@@ -610,7 +600,7 @@ pub enum EppoError {
 /// it (`git checkout` it to rerun such a config). A config written before the
 /// removal still loads where it holds one at that value; one that used it is
 /// refused by name.
-pub const RETIRED: [(&str, Option<&str>, &str); 8] = [
+pub const RETIRED: [(&str, Option<&str>, &str); 9] = [
     // The PID Lagrangian (results/eppo_darkroom_budget, issue 18).
     ("lambda_kp", Some("0.0"), PID_AND_LATE_RATE),
     ("lambda_kd", Some("0.0"), PID_AND_LATE_RATE),
@@ -628,10 +618,14 @@ pub const RETIRED: [(&str, Option<&str>, &str); 8] = [
     ("bc_coef", Some("0.0"), ACTOR_AND_ANNEAL),
     // The novelty bonus annealed to 0 over training (Point ps6).
     ("novelty_anneal_updates", Some("0"), ACTOR_AND_ANNEAL),
+    // A head reading where earlier costs were paid off the encoding (Point
+    // pe2: it cost the return trip).
+    ("hazard_recall_coef", Some("0.0"), HAZARD_RECALL),
 ];
 
 const PID_AND_LATE_RATE: &str = "b1f1bdb663c9833aefcfffa79f077dcd3d455b0b";
 const ACTOR_AND_ANNEAL: &str = "db40554803feeb6dadd0adc8842796b03fa193c4";
+const HAZARD_RECALL: &str = "8a5cee241507924037a24029831611b616eec709";
 
 /// Drops the [`RETIRED`] settings of `table` that hold their inert value;
 /// refuses one that does not, naming it.
@@ -740,11 +734,6 @@ impl EppoConfig {
             (
                 "goal_recall_coef",
                 self.goal_recall_coef,
-                Range::NON_NEGATIVE,
-            ),
-            (
-                "hazard_recall_coef",
-                self.hazard_recall_coef,
                 Range::NON_NEGATIVE,
             ),
             (

@@ -26,8 +26,6 @@ pub struct UpdateStats {
     pub log_std_mean: f64,
     /// The goal-recall loss (NaN without the head).
     pub goal_recall_loss: f64,
-    /// The hazard-recall loss (NaN without the head).
-    pub hazard_recall_loss: f64,
     /// Mean Q of the novelty critics on the replayed actions (NaN without).
     pub novelty_q_mean: f64,
 }
@@ -39,8 +37,6 @@ pub(super) struct LossDiagnostics {
     pub(super) log_std_mean: Option<Tensor>,
     /// The goal-recall loss (with gradient), where the net has the head.
     pub(super) goal_recall: Option<Tensor>,
-    /// The hazard-recall loss (with gradient), where the net has the head.
-    pub(super) hazard_recall: Option<Tensor>,
     /// Mean Q of the novelty critics on the replayed actions, where the net
     /// has them.
     pub(super) novelty_q_mean: Option<Tensor>,
@@ -113,10 +109,6 @@ pub(super) fn losses(
                 .goal_recall
                 .as_ref()
                 .map(|head| goal_recall_loss(head, &h, batch)),
-            hazard_recall: net
-                .hazard_recall
-                .as_ref()
-                .map(|head| hazard_recall_loss(head, &h, batch)),
             novelty_q_mean: actor.qn_taken.as_ref().map(|qn| {
                 masked_mean(
                     &qn.detach().mean_dim(-1, false, Kind::Float),
@@ -210,15 +202,6 @@ impl TargetForward<'_> {
     fn run(self) -> Result<Tensor, EppoError> {
         tch::no_grad(|| self.target.encode(&self.tokens, false))
     }
-}
-
-/// Squared distance between the nearest earlier cost's offset read off h_t
-/// and the true one, averaged over the steps after the window's first cost.
-pub(super) fn hazard_recall_loss(head: &Head, h: &Tensor, batch: &Batch) -> Tensor {
-    let error = (head.forward(h) - &batch.hazard_offset)
-        .square()
-        .sum_dim_intlist(-1, false, Kind::Float); // (B, L)
-    masked_mean(&error, &batch.hazard_known)
 }
 
 /// The reward, cost and (with novelty critics) novelty TD targets y, yc

@@ -55,8 +55,7 @@
 //! episode that shows the goal (`scripted_first_episode`, on a `scripted_share`
 //! of the trajectories), an auxiliary loss
 //! that reads the found goal off the trajectory encoding
-//! (`goal_recall_coef`), its twin for where earlier costs were paid
-//! (`hazard_recall_coef`), observations standardised by a random policy's
+//! (`goal_recall_coef`), observations standardised by a random policy's
 //! statistics (`standardise_observations`), SAC's automatic temperature
 //! (`target_entropy`: the entropy weight tuned so that a continuous actor
 //! cannot collapse onto its action bounds), a sinusoid of each step's index within its episode
@@ -118,7 +117,7 @@
 //! (whether the constraint acted in the round), `over_budget_price` (the
 //! excess price charged, 0 when none is), `entropy_coef`,
 //! `losses/value_loss`, `losses/cost_value_loss`, `losses/policy_loss`, `losses/entropy`, `losses/grad_norm`,
-//! `losses/goal_recall` and `losses/hazard_recall` (NaN without the head), `losses/novelty_q_mean` (the
+//! `losses/goal_recall` (NaN without the head), `losses/novelty_q_mean` (the
 //! novelty critics' mean Q; NaN without them), `charts/epsilon`,
 //! `charts/updates_per_s`, `charts/env_steps_per_s`, `charts/cpu_learner` and
 //! (overlapped) `charts/cpu_actor` (the share of a core each thread kept busy
@@ -328,9 +327,6 @@ impl Learner {
         if let Some(recall) = &diag.goal_recall {
             loss += recall * self.cfg.goal_recall_coef;
         }
-        if let Some(recall) = &diag.hazard_recall {
-            loss += recall * self.cfg.hazard_recall_coef;
-        }
         self.times.forward += lap(&mut clock);
         // A NaN or infinite loss or gradient is never applied: the weights
         // stay those of the last good update and `train` stops with this.
@@ -375,10 +371,6 @@ impl Learner {
             log_std_mean: diag.log_std_mean.map_or(f64::NAN, |t| t.double_value(&[])),
             goal_recall_loss: diag
                 .goal_recall
-                .as_ref()
-                .map_or(f64::NAN, |t| t.double_value(&[])),
-            hazard_recall_loss: diag
-                .hazard_recall
                 .as_ref()
                 .map_or(f64::NAN, |t| t.double_value(&[])),
             novelty_q_mean: diag
@@ -829,7 +821,6 @@ fn round_record(
         "losses/target_mean": avg(|s| s.target_mean),
         "losses/log_std_mean": avg(|s| s.log_std_mean),
         "losses/goal_recall": avg(|s| s.goal_recall_loss),
-        "losses/hazard_recall": avg(|s| s.hazard_recall_loss),
         "losses/novelty_q_mean": avg(|s| s.novelty_q_mean),
         "charts/action_abs": round.action_abs,
         "charts/action_saturated": round.action_saturated,

@@ -182,9 +182,6 @@ pub struct EppoNet {
     pub(super) novelty_critic: Option<Head>,
     /// With `goal_recall_coef` > 0: the goal's position (2) from h.
     pub(super) goal_recall: Option<Head>,
-    /// With `hazard_recall_coef` > 0: the nearest earlier cost's position
-    /// relative to the agent's (2) from h.
-    pub(super) hazard_recall: Option<Head>,
     /// With `episode_positions`: a sinusoid table indexed by the step's
     /// index within its episode, (max_len, D); no weights.
     episode_sinusoid: Option<Tensor>,
@@ -230,8 +227,6 @@ impl EppoNet {
             }),
             goal_recall: (cfg.goal_recall_coef > 0.0)
                 .then(|| Head::new(&p / "goal_recall", d, cfg.head_hidden, 2)),
-            hazard_recall: (cfg.hazard_recall_coef > 0.0)
-                .then(|| Head::new(&p / "hazard_recall", d, cfg.head_hidden, 2)),
             episode_sinusoid: cfg
                 .episode_positions
                 .then(|| sinusoids(cfg.model.max_len, d, p.device())),

@@ -363,12 +363,6 @@ pub(super) struct Batch {
     /// in the context there (the goal-recall loss, the novelty critics'
     /// weight in the actor).
     pub(super) goal_known: Tensor,
-    /// With `hazard_recall_coef`: (B, L, 2) the position of the nearest cost
-    /// paid earlier in the window, less the agent's position at t, and (B, L)
-    /// 1 on the real steps after the window's first cost (the recall loss's
-    /// mask); zeros without the head.
-    pub(super) hazard_offset: Tensor,
-    pub(super) hazard_known: Tensor,
     /// With `novelty_critic`: (B, L) the novelty bonus (scaled) that
     /// `rewards` would otherwise carry, the novelty critics' reward (less
     /// the over-budget price with `novelty_pays_price`).
@@ -553,8 +547,6 @@ pub(super) fn make_batch(
     let mut novelty_boot = vec![0f32; b * l];
     let mut cost_boot = vec![0f32; b * l];
     let mut goal_known = vec![0f32; b * l];
-    let mut hazard_offset = vec![0f32; b * l * 2];
-    let mut hazard_known = vec![0f32; b * l];
     let zeros_a = vec![0f32; a];
     let zeros_o = vec![0f32; spec.obs_dim];
     let over_budget = shaping.over_budget();
@@ -582,9 +574,6 @@ pub(super) fn make_batch(
         // The goal is known once found, or throughout when shown.
         let mut found =
             cfg.goal_in_observation && t.obs.get(..spec.obs_dim).is_some_and(GoalShown::shows);
-        // Where the window's costs so far were paid (the observation each
-        // arrived with), for the hazard-recall head.
-        let mut paid_at: Vec<[f32; 2]> = Vec::new();
         for i in 0..l {
             let k = j * l + i;
             if i >= len {
@@ -692,15 +681,6 @@ pub(super) fn make_batch(
             valid[k] = 1.0;
             goal_known[k] = if found { 1.0 } else { 0.0 };
             found |= t.terminated[step];
-            if cfg.hazard_recall_coef > 0.0 {
-                if step > 0 && t.costs[step - 1] > 0.0 {
-                    paid_at.push([arrived[0], arrived[1]]);
-                }
-                if let Some(offset) = nearest_offset(&paid_at, [obs[0], obs[1]]) {
-                    hazard_offset[2 * k..2 * k + 2].copy_from_slice(&offset);
-                    hazard_known[k] = 1.0;
-                }
-            }
             let (has_target, mut bootstraps, cost_bootstraps) = td_masks(cfg, t, step, i + 1 < len);
             let mut novelty_bootstraps = bootstraps;
             if let Some((end_reward, ends)) = &value_ends
@@ -741,21 +721,9 @@ pub(super) fn make_batch(
             .view([bi, 2])
             .to_device(device),
         goal_known: f(&goal_known),
-        hazard_offset: Tensor::from_slice(&hazard_offset)
-            .view([bi, li, 2])
-            .to_device(device),
-        hazard_known: f(&hazard_known),
         novelty_rewards: cfg.novelty_critic.then(|| f(&novelty_rew)),
         novelty_bootstrap: f(&novelty_boot),
     }
-}
-
-/// The position in `points` nearest to `at`, less `at`; None when empty.
-fn nearest_offset(points: &[[f32; 2]], at: [f32; 2]) -> Option<[f32; 2]> {
-    points
-        .iter()
-        .map(|p| [p[0] - at[0], p[1] - at[1]])
-        .min_by(|a, b| a[0].hypot(a[1]).total_cmp(&b[0].hypot(b[1])))
 }
 
 /// Each trajectory's window (start, length): at most `seq` steps, starting

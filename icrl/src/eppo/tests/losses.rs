@@ -118,61 +118,6 @@ fn the_target_forward_beside_the_online_one_computes_the_same_losses() {
     assert_eq!(one, two);
 }
 
-/// The hazard-recall target is the nearest earlier cost's position (the
-/// observation the cost arrived with) less the agent's, on the steps after
-/// the window's first cost only; its loss teaches the head, and the update
-/// adds it to what it minimises: without its weight there is no head.
-#[test]
-fn hazard_recall_reads_the_nearest_earlier_cost_and_is_part_of_the_update() {
-    assert!(tiny_learner(0).0.net.hazard_recall.is_none());
-    let mut cfg = EppoConfig {
-        hazard_recall_coef: 1.0,
-        ..tiny()
-    };
-    cfg.model.embd_dropout = 0.0;
-    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
-    // Costs arrive at (4, 6) after step 1 and at (5, 4) after step 3.
-    let mut t = two_episode_trajectory();
-    t.actions = (0..5)
-        .flat_map(|s| (0..5).map(move |a| f32::from(u8::from(a == s))))
-        .collect();
-    let mut rng = ChaCha8Rng::seed_from_u64(0);
-    let batch = unshaped_batch(&[&t], &cfg, &learner.spec, &mut rng);
-    assert_eq!(to_vec(&batch.hazard_known), [0.0, 0.0, 1.0, 1.0, 1.0]);
-    // Step 2 stands on (4, 6); step 3 at (4, 4) has it 2 away; step 4 at
-    // (5, 4) stands on the newer cost, nearer than (4, 6).
-    assert_eq!(
-        to_vec(&batch.hazard_offset),
-        [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0, 0.0, 0.0]
-    );
-    let head_weights = |learner: &Learner| {
-        let head = learner.net.hazard_recall.as_ref().unwrap();
-        let d = learner.cfg.model.d_model;
-        to_vec(&head.forward(&Tensor::ones([1, d], (Kind::Float, Device::Cpu))))
-    };
-    let loss = |learner: &Learner| {
-        let h = learner.net.encode(&batch.tokens, false).unwrap();
-        hazard_recall_loss(learner.net.hazard_recall.as_ref().unwrap(), &h, &batch)
-    };
-    let first = loss(&learner).double_value(&[]);
-    for _ in 0..200 {
-        learner.opt.backward_step(&loss(&learner));
-    }
-    let last = loss(&learner).double_value(&[]);
-    assert!(last < 0.1 * first, "hazard recall loss {first} -> {last}");
-    // An update moves the head only through this loss: it is in the total.
-    for _ in 0..learner.cfg.batch_size {
-        learner.replay.push(t.clone());
-    }
-    let before = head_weights(&learner);
-    learner.update().unwrap();
-    assert_ne!(
-        head_weights(&learner),
-        before,
-        "the update left the head alone"
-    );
-}
-
 /// The novelty critics: their TD loss is part of Lv, and the actor weighs
 /// their value only on steps whose context holds no success yet (shifting
 /// their values moves Lp there and nowhere else), for discrete and

@@ -17,10 +17,7 @@ use super::collect::{
     Acting, EnvActions, GoalSlotStats, Policy, last_over_budget, new_cells_while_searching,
     repeat_cost_per_episode, sample_actions,
 };
-use super::losses::{
-    goal_recall_loss, hazard_recall_loss, losses, n_step_targets, penalised_cost,
-    tuned_entropy_coef,
-};
+use super::losses::{goal_recall_loss, losses, n_step_targets, penalised_cost, tuned_entropy_coef};
 use super::replay::{
     Batch, BudgetInTargets, OverBudget, Shaping, make_batch, novel_arrivals, repeated_costs,
 };
