@@ -288,22 +288,6 @@ pub struct EppoConfig {
     /// cell of the `search_new_cells` metric.
     #[serde(default = "default_novelty_cell")]
     pub novelty_cell: f64,
-    /// The bonus rises with the episode index k (from 0) of the arrival:
-    /// `novelty_bonus x (1 + novelty_rise x k)`. Late in a search the goal
-    /// is more likely to lie in ground not yet covered, which centre-oriented
-    /// pretraining goals, found in the first few episodes, rarely teach;
-    /// held-out search stopped after episode 6-7 (issues 18, 19). 0: flat.
-    #[serde(default)]
-    pub novelty_rise: f64,
-    /// Each new cell's bonus is scaled by its distance from the episode's
-    /// start position over this many observation units (0: unscaled), so
-    /// that search reaches far ground, where Car's flat-bonus search missed
-    /// most goals. Measured on Car from scratch (results/eppo_car_ladder,
-    /// cd1): more held-out edge goals found for a while, but the drive to a
-    /// shown goal never formed, and by 10000 updates the search had narrowed
-    /// again.
-    #[serde(default)]
-    pub novelty_distance_scale: f64,
     /// The novelty bonus gets critics of its own, kept apart from the task's
     /// reward critics, and the actor weighs them only on steps whose context
     /// holds no success yet: once a goal is found, nothing of the search
@@ -380,12 +364,6 @@ pub struct EppoConfig {
     /// dw1 -> dw1p -> dw1q).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub over_budget_price_schedule: Vec<PriceChange>,
-    /// Move the price linearly from `over_budget_cost_price` at the
-    /// constraint's start to each change's price at its `after`, instead of
-    /// in steps: each step of the schedule opened a dip in training revisits
-    /// (0.88 -> 0.56 on seed 1 after the step to 3.0, dw2s).
-    #[serde(default)]
-    pub over_budget_price_ramp: bool,
     /// `penalty = "excess"`: when > 0, the price falls only on repeated
     /// costs, those paid within this distance (of the position at
     /// observation indices 0 and 1) of where the trajectory paid a cost in
@@ -600,7 +578,7 @@ pub enum EppoError {
 /// it (`git checkout` it to rerun such a config). A config written before the
 /// removal still loads where it holds one at that value; one that used it is
 /// refused by name.
-pub const RETIRED: [(&str, Option<&str>, &str); 9] = [
+pub const RETIRED: [(&str, Option<&str>, &str); 12] = [
     // The PID Lagrangian (results/eppo_darkroom_budget, issue 18).
     ("lambda_kp", Some("0.0"), PID_AND_LATE_RATE),
     ("lambda_kd", Some("0.0"), PID_AND_LATE_RATE),
@@ -621,11 +599,26 @@ pub const RETIRED: [(&str, Option<&str>, &str); 9] = [
     // A head reading where earlier costs were paid off the encoding (Point
     // pe2: it cost the return trip).
     ("hazard_recall_coef", Some("0.0"), HAZARD_RECALL),
+    // The novelty bonus rising with the episode index (dn1, Point ps7) and
+    // scaled by the distance from the episode's start (Car cd1, cd2).
+    ("novelty_rise", Some("0.0"), NOVELTY_SHAPES_AND_RAMP),
+    (
+        "novelty_distance_scale",
+        Some("0.0"),
+        NOVELTY_SHAPES_AND_RAMP,
+    ),
+    // The over-budget price moved linearly rather than in steps (dw2u).
+    (
+        "over_budget_price_ramp",
+        Some("false"),
+        NOVELTY_SHAPES_AND_RAMP,
+    ),
 ];
 
 const PID_AND_LATE_RATE: &str = "b1f1bdb663c9833aefcfffa79f077dcd3d455b0b";
 const ACTOR_AND_ANNEAL: &str = "db40554803feeb6dadd0adc8842796b03fa193c4";
 const HAZARD_RECALL: &str = "8a5cee241507924037a24029831611b616eec709";
+const NOVELTY_SHAPES_AND_RAMP: &str = "1096eed9892161592b2878611d3cef89371e88d3";
 
 /// Drops the [`RETIRED`] settings of `table` that hold their inert value;
 /// refuses one that does not, naming it.
@@ -743,12 +736,6 @@ impl EppoConfig {
             ),
             ("novelty_bonus", self.novelty_bonus, Range::NON_NEGATIVE),
             ("novelty_cell", self.novelty_cell, Range::POSITIVE),
-            ("novelty_rise", self.novelty_rise, Range::NON_NEGATIVE),
-            (
-                "novelty_distance_scale",
-                self.novelty_distance_scale,
-                Range::NON_NEGATIVE,
-            ),
             ("scripted_share", self.scripted_share, Range::UNIT),
             ("goal_hidden_share", self.goal_hidden_share, Range::UNIT),
             ("hazard_hidden_share", self.hazard_hidden_share, Range::UNIT),
@@ -830,12 +817,6 @@ impl EppoConfig {
                  like one goal)",
                 self.over_budget_cost_price
             ));
-        }
-        if self.over_budget_price_ramp && self.over_budget_price_schedule.is_empty() {
-            return bad("over_budget_price_ramp = true moves the price towards \
-                 over_budget_price_schedule's changes, and the schedule is empty: set it, or \
-                 drop the ramp"
-                .to_string());
         }
         if !self.over_budget_price_schedule.is_empty() {
             if !matches!(self.penalty, PenaltyForm::Saute | PenaltyForm::Excess) {
@@ -1158,13 +1139,7 @@ impl EppoConfig {
         };
         for &next in &self.over_budget_price_schedule {
             if updates_constrained < next.after {
-                if !self.over_budget_price_ramp {
-                    return reached.price;
-                }
-                // `after` rises (validated), so next.after > reached.after here.
-                let share = (updates_constrained - reached.after) as f64
-                    / (next.after - reached.after) as f64;
-                return reached.price + (next.price - reached.price) * share;
+                return reached.price;
             }
             reached = next;
         }

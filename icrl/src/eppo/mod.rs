@@ -70,9 +70,7 @@
 //! Levers for the budget ladder (results/eppo_darkroom_budget), likewise off
 //! until measured: behaviour noise capped once a trajectory has found its goal
 //! (`eps_after_success`), a critic-only bonus for cells new to the trajectory
-//! until its first success (`novelty_bonus`, rising with the episode index by
-//! `novelty_rise`, scaled by the distance from the episode's start with
-//! `novelty_distance_scale`; gated by the budget with `novelty_budget`:
+//! until its first success (`novelty_bonus`; gated by the budget with `novelty_budget`:
 //! withheld past it, or scaled by the share of it left; learned by critics
 //! of its own that the actor weighs only until its context holds a success,
 //! with `novelty_critic`, which pay the over-budget price as well with
@@ -94,8 +92,7 @@
 //! training revisit rate to reach a level (`multiplier::ConstraintStart`):
 //! priced before the agent comes back to the goals it finds, it learns to
 //! search and never to come back (dx1). `over_budget_price_schedule` raises
-//! the price in steps after that start, or linearly with
-//! `over_budget_price_ramp`: the price that lets search survive the start is
+//! the price in steps after that start: the price that lets search survive the start is
 //! too low to make the budget bind later (dw1 -> dw1q).
 //!
 //! Metrics (`metrics.jsonl`, one record per collection round, against

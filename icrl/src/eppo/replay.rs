@@ -447,22 +447,6 @@ pub(super) fn novel_arrivals(
     novel
 }
 
-/// Each step's arrival: its distance from its episode's start position,
-/// over `scale`.
-fn distances_from_episode_start(t: &Trajectory, obs_dim: usize, scale: f64) -> Vec<f32> {
-    let position = |o: &[f32]| [o[0], o[1]];
-    let mut start = [0f32; 2];
-    (0..t.len())
-        .map(|step| {
-            if t.start[step] {
-                start = position(&t.obs[step * obs_dim..]);
-            }
-            let arrived = position(&t.next_obs[step * obs_dim..]);
-            (f64::from(GoalRule::distance(arrived, start)) / scale) as f32
-        })
-        .collect()
-}
-
 /// What the critics' rewards carry beyond the collected reward at one update
 /// ([`EppoConfig::shaping`]); the tokens never do.
 #[derive(Clone, Copy, Debug, Default, PartialEq)]
@@ -562,8 +546,6 @@ pub(super) fn make_batch(
         } else {
             vec![0.0; t.len()]
         };
-        let outward = (shaping.novelty > 0.0 && cfg.novelty_distance_scale > 0.0)
-            .then(|| distances_from_episode_start(t, spec.obs_dim, cfg.novelty_distance_scale));
         // Under a repeat radius, the steps whose cost the price or the
         // termination may act on.
         let repeated = (cfg.repeat_cost_radius > 0.0)
@@ -635,9 +617,7 @@ pub(super) fn make_batch(
                 NoveltyBudget::RemainingShare => (t.ctg[step] / t.budget).clamp(0.0, 1.0),
                 NoveltyBudget::Always | NoveltyBudget::WithinBudget => 1.0,
             };
-            let rise = 1.0 + cfg.novelty_rise as f32 * t.episode[step] as f32;
-            let far = outward.as_ref().map_or(1.0, |d| d[step]);
-            let novelty = shaping.novelty * novel[step] * share * rise * far;
+            let novelty = shaping.novelty * novel[step] * share;
             // The step's reward with `bonus` for novelty (nothing of it once
             // the episode's budget is spent, unless the price leaves it).
             let priced = |bonus: f32| {

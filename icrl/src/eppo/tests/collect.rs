@@ -366,32 +366,6 @@ fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
     let bonus = batch(&cfg, 0.1);
     assert_eq!(to_vec(&plain.tokens), to_vec(&bonus.tokens));
     assert_eq!(paid(&bonus), vec![0.1, 0.0, 0.1, 0.0, 0.1, 0.0, 0.0, 0.0]);
-    // Rising with the episode index: the arrival at step 4 is in episode 1
-    // (from 0), so it earns 0.1 x (1 + 0.5 x 1); episode 0's are unchanged.
-    let mut rising = cfg.clone();
-    rising.novelty_rise = 0.5;
-    assert_eq!(
-        paid(&batch(&rising, 0.1)),
-        vec![0.1, 0.0, 0.1, 0.0, 0.15, 0.0, 0.0, 0.0]
-    );
-    rising.novelty_rise = -0.1;
-    assert!(refused(&rising, "novelty_rise"));
-    // Scaled by the arrival's distance from its episode's start, (4, 4):
-    // 1 cell for the first two new cells, sqrt(2) for (3, 5); over 2 cells,
-    // half that.
-    let mut outward = cfg.clone();
-    outward.novelty_distance_scale = 1.0;
-    assert_eq!(
-        paid(&batch(&outward, 0.1)),
-        vec![0.1, 0.0, 0.1, 0.0, 0.141, 0.0, 0.0, 0.0]
-    );
-    outward.novelty_distance_scale = 2.0;
-    assert_eq!(
-        paid(&batch(&outward, 0.1)),
-        vec![0.05, 0.0, 0.05, 0.0, 0.071, 0.0, 0.0, 0.0]
-    );
-    outward.novelty_distance_scale = -1.0;
-    assert!(refused(&outward, "novelty_distance_scale"));
 }
 
 /// With novelty critics, the bonus a step's reward would carry moves into

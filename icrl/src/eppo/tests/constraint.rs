@@ -496,17 +496,10 @@ fn the_price_schedule_counts_updates_from_the_constraints_start() {
         },
         "over_budget_price_schedule changes the price",
     );
-    refused(
-        &|c| {
-            c.over_budget_price_ramp = true;
-            c.over_budget_price_schedule.clear();
-        },
-        "over_budget_price_ramp = true moves the price",
-    );
 }
 
 #[test]
-fn the_price_ramp_moves_linearly_from_the_start_price_through_each_change() {
+fn the_price_schedule_steps_at_each_change() {
     let mut cfg = priced_from_update_100(PenaltyForm::Excess);
     cfg.over_budget_price_schedule = vec![
         PriceChange {
@@ -518,34 +511,26 @@ fn the_price_ramp_moves_linearly_from_the_start_price_through_each_change() {
             price: 6.0,
         },
     ];
-    cfg.over_budget_price_ramp = true;
     cfg.validate().unwrap();
-    let price_at = |updates: u64| {
-        cfg.shaping(updates, Some(100))
-            .over_budget()
-            .map(|o| o.cost_price)
-    };
-    // 2.0 at the start, 3.0 at 50 updates past it, 6.0 at 80 and after.
+    // 2.0 from the start, 3.0 from 50 updates past it, 6.0 from 80 on.
     for (updates, price) in [
         (100, 2.0),
-        (125, 2.5),
-        (149, 2.98),
+        (149, 2.0),
         (150, 3.0),
-        (160, 4.0),
-        (170, 5.0),
+        (179, 3.0),
         (180, 6.0),
         (5000, 6.0),
     ] {
-        let got = price_at(updates).unwrap();
-        assert!((got - price).abs() < 1e-6, "{updates}: {got} != {price}");
+        let got = cfg
+            .shaping(updates, Some(100))
+            .over_budget()
+            .map(|o| o.cost_price)
+            .unwrap();
+        assert_eq!(got, price as f32, "{updates}");
     }
-    // A change at the start itself is a step, as without the ramp.
+    // A change at the start itself applies from the start.
     cfg.over_budget_price_schedule[0].after = 0;
     assert_eq!(cfg.over_budget_price(0), 3.0);
-    assert!((cfg.over_budget_price(40) - 4.5).abs() < 1e-9);
-    // Without the ramp the same schedule steps.
-    cfg.over_budget_price_ramp = false;
-    assert_eq!(cfg.over_budget_price(79), 3.0);
 }
 
 #[test]
