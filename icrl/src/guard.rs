@@ -127,23 +127,13 @@ pub fn check_counts(items: &[(&str, i128)]) -> Result<(), String> {
 /// read. The error says what it is (`it is a FIFO, not a regular file`);
 /// a path that does not exist passes (its reader names that).
 pub fn regular_file(path: &std::path::Path) -> Result<(), String> {
-    use std::os::unix::fs::FileTypeExt;
-    let Ok(meta) = std::fs::metadata(path) else {
-        return Ok(());
-    };
-    let kind = meta.file_type();
-    let what = if kind.is_file() {
-        return Ok(());
-    } else if kind.is_fifo() {
-        "a FIFO"
-    } else if kind.is_dir() {
-        "a folder"
-    } else if kind.is_socket() {
-        "a socket"
-    } else {
-        "a device"
-    };
-    Err(format!("it is {what}, not a regular file"))
+    match std::fs::metadata(path) {
+        Ok(meta) if !meta.is_file() => Err(format!(
+            "it is {}, not a regular file",
+            safety_envs::output::kind(&meta.file_type())
+        )),
+        _ => Ok(()),
+    }
 }
 
 /// The name of the first variable of `vs` (in name order) holding NaN or

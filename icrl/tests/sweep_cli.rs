@@ -4,7 +4,7 @@
 
 use std::fs;
 use std::path::{Path, PathBuf};
-use std::process::{Command, Output, Stdio};
+use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
 fn tmpdir(name: &str) -> PathBuf {
@@ -29,13 +29,23 @@ fn grid_file(dir: &Path, seeds: &str, updates: u64) -> PathBuf {
     path
 }
 
-fn sweep_run(grid: &Path) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_icrl"))
-        .args(["sweep", "--run", "--grid"])
+/// `icrl sweep ARGS --grid GRID`, which must succeed; its stdout.
+fn sweep(grid: &Path, args: &[&str]) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_icrl"))
+        .arg("sweep")
+        .args(args)
+        .arg("--grid")
         .arg(grid)
         .stdin(Stdio::null())
         .output()
-        .unwrap()
+        .unwrap();
+    let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
+    assert!(
+        out.status.success(),
+        "{stdout}\n{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    stdout
 }
 
 /// The run folders under a task's folder.
@@ -53,13 +63,7 @@ fn runs_of(task: &Path) -> Vec<PathBuf> {
 fn a_grid_runs_here_task_after_task_and_a_second_run_skips_the_finished() {
     let dir = tmpdir("run");
     let grid = grid_file(&dir, "[0, 1]", 2);
-    let out = sweep_run(&grid);
-    let stdout = String::from_utf8_lossy(&out.stdout);
-    assert!(
-        out.status.success(),
-        "{stdout}\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let stdout = sweep(&grid, &["--run"]);
     assert!(
         stdout.contains("2 tasks trained, 0 already finished"),
         "{stdout}"
@@ -72,9 +76,7 @@ fn a_grid_runs_here_task_after_task_and_a_second_run_skips_the_finished() {
             "{task}"
         );
     }
-    let again = sweep_run(&grid);
-    let stdout = String::from_utf8_lossy(&again.stdout);
-    assert!(again.status.success(), "{stdout}");
+    let stdout = sweep(&grid, &["--run"]);
     assert!(
         stdout.contains("0 tasks trained, 2 already finished"),
         "{stdout}"
@@ -91,18 +93,7 @@ fn a_grid_runs_here_task_after_task_and_a_second_run_skips_the_finished() {
         "[gather]\neval_seeds = [3, 5]\ntasks = 2\nepisodes = 2\nn_budgets = 2\nrandom = true\n",
     );
     fs::write(&grid, text).unwrap();
-    let gathered = Command::new(env!("CARGO_BIN_EXE_icrl"))
-        .args(["sweep", "--gather", "--threads", "1", "--grid"])
-        .arg(&grid)
-        .stdin(Stdio::null())
-        .output()
-        .unwrap();
-    let stdout = String::from_utf8_lossy(&gathered.stdout);
-    assert!(
-        gathered.status.success(),
-        "{stdout}\n{}",
-        String::from_utf8_lossy(&gathered.stderr)
-    );
+    let stdout = sweep(&grid, &["--gather", "--threads", "1"]);
     assert!(
         stdout.contains("4 runs evaluated"),
         "2 runs x 2 seeds: {stdout}"
@@ -187,15 +178,9 @@ fn a_stop_reaches_the_task_in_progress_once_and_the_next_run_continues_it() {
     .unwrap();
     let before = fs::read_to_string(run.join("config.toml")).unwrap();
     assert!(before.contains("total_updates = 100000"));
-    let out = sweep_run(&grid);
-    let stdout = String::from_utf8_lossy(&out.stdout);
     // The stopped run asked for more updates than the grid now does: it is
     // either finished as it stands or resumed to the new end, never restarted.
-    assert!(
-        out.status.success(),
-        "{stdout}\n{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
+    let stdout = sweep(&grid, &["--run"]);
     assert_eq!(runs_of(&task).len(), 1, "the same run folder: {stdout}");
     assert_eq!(runs_of(&dir.join("runs").join("seed1")).len(), 1);
     fs::remove_dir_all(&dir).unwrap();

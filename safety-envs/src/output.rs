@@ -58,8 +58,8 @@ impl Existing {
     }
 }
 
-/// What kind of thing a path names, for messages.
-fn kind(ft: &fs::FileType) -> &'static str {
+/// What kind of thing a path names, for messages ("a FIFO", "a folder", ...).
+pub fn kind(ft: &fs::FileType) -> &'static str {
     use std::os::unix::fs::FileTypeExt;
     if ft.is_dir() {
         "a folder"
