@@ -30,7 +30,7 @@ impl Learner {
     pub fn save_checkpoint(&self, run: &RunDir) -> Result<PathBuf, EppoError> {
         let state = TrainState {
             lambda: self.multiplier.lambda,
-            multiplier: Some(self.multiplier),
+            multiplier: Some(self.multiplier.clone()),
             constraint_start: Some(self.constraint_start.clone()),
             entropy_coef: Some(self.entropy_coef),
             updates: self.updates,
@@ -148,6 +148,15 @@ impl Learner {
         learner.multiplier = state
             .multiplier
             .unwrap_or_else(|| Multiplier::new(state.lambda));
+        // A fork onto per-episode multipliers, or to another K: the new ones
+        // start at the checkpoint's lambda; a fork off them keeps lambda alone.
+        let k = if learner.cfg.per_episode_multipliers {
+            learner.cfg.k_max
+        } else {
+            0
+        };
+        let lambda = learner.multiplier.lambda;
+        learner.multiplier.per_episode.resize(k, lambda);
         // A tuned weight goes on from where it was; a fixed one is the
         // config's, so that a fork can change it.
         if learner.cfg.target_entropy.is_some() {

@@ -91,6 +91,13 @@ pub struct EppoConfig {
     pub lambda_max: f64,
     /// Initial multiplier.
     pub lambda_init: f64,
+    /// Eq. (6)'s naive primal-dual solver instead of Eq. (7): one multiplier
+    /// per episode index k, each moved by its own episode's excess C_k -
+    /// delta alone (as RCPO does), and charged on that episode's steps. The
+    /// paper's ablation against EPPO's one exact-penalty multiplier
+    /// (Figure 5). Under `penalty = "hindsight"` only.
+    #[serde(default)]
+    pub per_episode_multipliers: bool,
     /// Updates before Eq. (7) starts moving lambda (it stays at `lambda_init`):
     /// the agent first learns to search and return to the goal, then the
     /// constraint prices its costs (a multiplier at its cap from the start
@@ -952,6 +959,13 @@ impl EppoConfig {
                 "constraint_after_revisit = {t} is a revisit rate: set it in (0, 1], or drop it \
                  to start the constraint after lambda_warmup_updates alone"
             ));
+        }
+        if self.per_episode_multipliers && self.penalty != PenaltyForm::Hindsight {
+            return bad(
+                "per_episode_multipliers charges each episode's multiplier on its steps' hindsight \
+                 flag: set penalty = \"hindsight\", or drop per_episode_multipliers"
+                    .to_string(),
+            );
         }
         if self.constraint_revisit_rounds == 0 {
             return bad(

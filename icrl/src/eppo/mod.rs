@@ -169,7 +169,7 @@ use crate::run_summary::random_rollouts;
 use collect::mean;
 use losses::{losses, polyak, tuned_entropy_coef};
 use relabel::relabel_some;
-use replay::make_batch;
+use replay::{Batch, make_batch};
 
 /// Everything a run carries between updates (and into checkpoints).
 pub struct Learner {
@@ -250,7 +250,11 @@ impl Learner {
         Ok(Learner {
             rng: ChaCha8Rng::seed_from_u64(cfg.seed),
             replay: Replay::new(cfg.replay_capacity),
-            multiplier: Multiplier::new(cfg.lambda_init),
+            multiplier: if cfg.per_episode_multipliers {
+                Multiplier::per_episode(cfg.lambda_init, cfg.k_max)
+            } else {
+                Multiplier::new(cfg.lambda_init)
+            },
             constraint_start: ConstraintStart::default(),
             entropy_coef: cfg.entropy_coef,
             updates: 0,
@@ -311,12 +315,24 @@ impl Learner {
         // The multiplier prices the costs the policy really paid: a
         // relabelled episode cut at its new goal holds only part of them.
         let violations: Vec<f32> = sampled.iter().map(|t| t.max_violation()).collect();
+        let excess: Vec<Vec<f32>> = sampled
+            .iter()
+            .map(|t| t.episode_costs.iter().map(|c| c - t.budget).collect())
+            .collect();
+        // Eq. (6): each step's hindsight flag carries its own episode's
+        // multiplier, and the losses' lambda is 1.
+        let (batch, lambda) = if self.cfg.per_episode_multipliers {
+            let violated = &batch.violated * self.multiplier.per_step(&batch.episode);
+            (Batch { violated, ..batch }, 1.0)
+        } else {
+            (batch, self.multiplier.lambda)
+        };
         self.times.batch += lap(&mut clock);
         let (lv, lc, lp, entropy, diag) = losses(
             &self.net,
             &self.target,
             &batch,
-            self.multiplier.lambda,
+            lambda,
             self.entropy_coef,
             &self.cfg,
         )?;
@@ -342,8 +358,12 @@ impl Learner {
         let grad_norm = self.opt.try_step().map_err(non_finite)?;
         self.times.optimizer += lap(&mut clock);
         if self.constrained() {
-            self.multiplier
-                .update(&violations, self.cfg.lambda_lr, self.cfg.lambda_max);
+            let (eta, max) = (self.cfg.lambda_lr, self.cfg.lambda_max);
+            if self.cfg.per_episode_multipliers {
+                self.multiplier.update_per_episode(&excess, eta, max);
+            } else {
+                self.multiplier.update(&violations, eta, max);
+            }
         }
         let entropy_now = entropy.double_value(&[]);
         if let Some(target) = self.cfg.target_entropy {

@@ -9,21 +9,60 @@ use serde::{Deserialize, Serialize};
 use super::losses::lambda_update;
 
 /// The multiplier's state, checkpointed with the run.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Multiplier {
-    /// lambda as the losses use it.
+    /// lambda as the losses use it (with per-episode multipliers, their mean,
+    /// for the record).
     pub lambda: f64,
+    /// `per_episode_multipliers`: Eq. (6)'s lambda_k, one per episode index.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub per_episode: Vec<f64>,
 }
 
 impl Multiplier {
     pub fn new(lambda: f64) -> Self {
-        Multiplier { lambda }
+        Multiplier {
+            lambda,
+            per_episode: Vec::new(),
+        }
+    }
+
+    /// Eq. (6)'s multipliers for `episodes` episode indices, each starting at
+    /// `lambda`.
+    pub fn per_episode(lambda: f64, episodes: usize) -> Self {
+        Multiplier {
+            lambda,
+            per_episode: vec![lambda; episodes],
+        }
     }
 
     /// Eq. (7)'s step on a batch's per-trajectory violations with step size
     /// `eta` and cap `max`; an empty batch changes nothing.
     pub fn update(&mut self, violations: &[f32], eta: f64, max: f64) {
         self.lambda = lambda_update(self.lambda, violations, eta, max);
+    }
+
+    /// Eq. (6)'s step: each lambda_k moves by the batch mean of C_k - delta
+    /// over the trajectories that hold an episode k (`excess[j][k]`), and on
+    /// nothing else.
+    pub fn update_per_episode(&mut self, excess: &[Vec<f32>], eta: f64, max: f64) {
+        for (k, lambda) in self.per_episode.iter_mut().enumerate() {
+            let at_k: Vec<f32> = excess.iter().filter_map(|e| e.get(k).copied()).collect();
+            *lambda = lambda_update(*lambda, &at_k, eta, max);
+        }
+        if !self.per_episode.is_empty() {
+            self.lambda = self.per_episode.iter().sum::<f64>() / self.per_episode.len() as f64;
+        }
+    }
+
+    /// The multiplier each step is charged with, (B, L), from its episode
+    /// index `episode` (B, L).
+    pub fn per_step(&self, episode: &tch::Tensor) -> tch::Tensor {
+        let lambdas: Vec<f32> = self.per_episode.iter().map(|&l| l as f32).collect();
+        tch::Tensor::from_slice(&lambdas)
+            .to_device(episode.device())
+            .index_select(0, &episode.flatten(0, -1))
+            .view_as(episode)
     }
 }
 

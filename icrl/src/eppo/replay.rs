@@ -345,6 +345,8 @@ pub(super) struct Batch {
     pub(super) costs: Tensor,
     /// (B, L) 1 where the step's episode exceeded the budget (v_e).
     pub(super) violated: Tensor,
+    /// (B, L) the step's episode index k within its trajectory (0 on padding).
+    pub(super) episode: Tensor,
     /// (B, L) the remaining budget CTG_t when the step was taken (unscaled).
     pub(super) ctg: Tensor,
     /// (B, L) 1 on real (not padded) steps: the actor loss.
@@ -524,6 +526,7 @@ pub(super) fn make_batch(
     let mut novelty_rew = vec![0f32; b * l];
     let mut cost = vec![0f32; b * l];
     let mut viol = vec![0f32; b * l];
+    let mut episode = vec![0i64; b * l];
     let mut ctg = vec![0f32; b * l];
     let mut valid = vec![0f32; b * l];
     let mut td_valid = vec![0f32; b * l];
@@ -653,6 +656,7 @@ pub(super) fn make_batch(
             }
             cost[k] = t.costs[step];
             ctg[k] = t.ctg[step];
+            episode[k] = i64::from(t.episode[step]);
             viol[k] = if violated[t.episode[step] as usize] {
                 1.0
             } else {
@@ -692,6 +696,9 @@ pub(super) fn make_batch(
         rewards: f(&rew),
         costs: f(&cost),
         violated: f(&viol),
+        episode: Tensor::from_slice(&episode)
+            .view([bi, li])
+            .to_device(device),
         ctg: f(&ctg),
         valid: f(&valid),
         td_valid: f(&td_valid),

@@ -863,3 +863,50 @@ fn configs_from_before_the_retirement_load_or_are_refused_by_name() {
     }
     assert!(loaded > 100, "{loaded} of {} configs load", configs.len());
 }
+
+/// Eq. (6)'s per-episode multipliers: each lambda_k moves by the mean excess
+/// of its own episode k over the trajectories that hold one, and is charged
+/// on that episode's steps only; refused outside the hindsight form; kept by
+/// the checkpoint.
+#[test]
+fn each_per_episode_multiplier_moves_on_its_own_episode_only() {
+    let mut m = Multiplier::per_episode(0.5, 3);
+    // Trajectory 0 overspends in episode 0 only; trajectory 1 holds two
+    // episodes, over budget in its first.
+    m.update_per_episode(&[vec![3.0, -1.0, -1.0], vec![1.0, -1.0]], 0.1, 1.0);
+    let want = [0.5 + 0.1 * 2.0, 0.5 - 0.1, 0.5 - 0.1];
+    for (got, want) in m.per_episode.iter().zip(want) {
+        assert!((got - want).abs() < 1e-6, "{:?}", m.per_episode);
+    }
+    assert!((m.lambda - want.iter().sum::<f64>() / 3.0).abs() < 1e-6);
+    // Capped and floored like Eq. (7).
+    m.update_per_episode(&[vec![100.0, -100.0, 0.0]], 0.1, 1.0);
+    assert_eq!(m.per_episode[..2], [1.0, 0.0]);
+    // Each step is charged its own episode's multiplier.
+    let episode = Tensor::from_slice(&[0i64, 0, 1, 2, 1, 0]).view([2, 3]);
+    let per_step: Vec<f32> = to_vec(&m.per_step(&episode));
+    let k2 = m.per_episode[2] as f32;
+    assert_eq!(per_step, vec![1.0, 1.0, 0.0, k2, 0.0, 1.0]);
+
+    let mut cfg = tiny();
+    cfg.per_episode_multipliers = true;
+    cfg.lambda_lr = 0.1;
+    cfg.lambda_max = 10.0;
+    cfg.lambda_warmup_updates = 0;
+    cfg.validate().unwrap();
+    let mut wrong = cfg.clone();
+    wrong.penalty = PenaltyForm::Hinge;
+    assert!(refused(&wrong, "per_episode_multipliers"));
+    // A learner takes one step per episode index and keeps them.
+    let (_, mut venv) = tiny_learner(0);
+    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
+    assert_eq!(learner.multiplier.per_episode, vec![0.0; cfg.k_max]);
+    learner.collect(&mut venv).unwrap();
+    learner.update().unwrap();
+    let out = std::env::temp_dir().join(format!("icrl-eppo-per-episode-{}", std::process::id()));
+    let run = crate::checkpoint::RunDir::create(&out, "darkroom", "eppo", cfg.seed).unwrap();
+    let saved = learner.save_checkpoint(&run).unwrap();
+    let resumed = Learner::resume(cfg, EnvName::DarkRoom, &saved).unwrap();
+    assert_eq!(resumed.multiplier, learner.multiplier);
+    std::fs::remove_dir_all(&out).unwrap();
+}
