@@ -10,7 +10,8 @@ use tch::{Device, nn};
 
 use super::checkpoint::{TrainState, model_manifest};
 use super::collect::{Acting, EnvActions, sample_actions};
-use super::config::{EppoConfig, EppoError, memory_estimate};
+use super::config::{EppoConfig, EppoError};
+use super::net::memory_estimate;
 use super::net::{EppoNet, NetSpec};
 use crate::agent::{Actions, AgentError, Conditioning, InContextAgent, StepInput};
 use crate::checkpoint::{CheckpointError, RunDir, read_manifest};

@@ -11,8 +11,6 @@ use thiserror::Error;
 
 use safety_envs::{EnvError, EnvName, GoalShown, HazardsShown, spawn_config};
 
-use super::net::NetSpec;
-use super::replay::{BudgetInTargets, OverBudget, Shaping};
 use crate::checkpoint::{CheckpointError, Retention};
 use crate::model::{self, ModelError};
 
@@ -1143,55 +1141,6 @@ impl EppoConfig {
             _ => true,
         }
     }
-
-    /// The price per unit of excess cost `updates_constrained` updates after
-    /// the constraint came on (`over_budget_price_schedule`).
-    pub fn over_budget_price(&self, updates_constrained: u64) -> f64 {
-        let mut reached = PriceChange {
-            after: 0,
-            price: self.over_budget_cost_price,
-        };
-        for &next in &self.over_budget_price_schedule {
-            if updates_constrained < next.after {
-                return reached.price;
-            }
-            reached = next;
-        }
-        reached.price
-    }
-
-    /// What the critics' rewards carry at update `updates` beyond the
-    /// collected reward. The over-budget reward (Saute's, the excess price)
-    /// starts with the constraint (`constrained_since`: the update it came
-    /// on at), as the multiplier does.
-    pub(super) fn shaping(&self, updates: u64, constrained_since: Option<u64>) -> Shaping {
-        let Some(since) = constrained_since else {
-            return Shaping {
-                novelty: self.novelty_bonus as f32,
-                ..Shaping::default()
-            };
-        };
-        let cost_price = self.over_budget_price(updates.saturating_sub(since)) as f32;
-        Shaping {
-            novelty: self.novelty_bonus as f32,
-            budget: match self.penalty {
-                PenaltyForm::Saute => BudgetInTargets::OverBudget(OverBudget {
-                    replaced_reward: Some(self.saute_unsafe_reward as f32),
-                    cost_price,
-                    pays_novelty: false,
-                }),
-                PenaltyForm::Excess => BudgetInTargets::OverBudget(OverBudget {
-                    replaced_reward: None,
-                    cost_price,
-                    pays_novelty: self.novelty_budget != NoveltyBudget::WithinBudget,
-                }),
-                PenaltyForm::Terminate => {
-                    BudgetInTargets::EndsValue(self.termination_reward as f32)
-                }
-                PenaltyForm::Hindsight | PenaltyForm::Hinge => BudgetInTargets::Absent,
-            },
-        }
-    }
 }
 
 /// `cpu` or `cuda` -> a libtorch device; `cuda` fails clearly without a GPU.
@@ -1211,58 +1160,4 @@ pub fn parse_device(name: &str) -> Result<Device, EppoError> {
             "device = {other:?}: expected cpu or cuda"
         ))),
     }
-}
-
-/// What a run with `cfg` on spaces `spec` will allocate, by part (checked
-/// against the machine's memory before anything is built). Parameters count
-/// the online and target networks, their gradients and Adam's two moments;
-/// one batch's activations are the transformer's saved tensors for
-/// `batch_size` sequences of `max_len` steps (plus the target's forward); the
-/// acting cache holds keys and values of `n_envs` trajectories. On `cuda`
-/// only the replay (host memory) is counted: the rest lives on the GPU,
-/// whose memory libtorch reports through no API tch binds.
-pub fn memory_estimate(cfg: &EppoConfig, spec: &NetSpec) -> crate::guard::MemoryEstimate {
-    use crate::guard::{transformer_activation_bytes, transformer_parameters};
-    let f = |x: usize| x as f64;
-    let (d, eh, hh) = (
-        cfg.model.d_model as f64,
-        cfg.encoder_hidden as f64,
-        cfg.head_hidden as f64,
-    );
-    let a = f(spec.act_flat());
-    let (actor_out, critic_in, critic_out) = match spec.n_actions {
-        Some(_) => (a, d, cfg.n_critics as f64 * a),
-        None => (2.0 * a, d + a, cfg.n_critics as f64),
-    };
-    let head = |i: f64, o: f64| i * hh + hh + hh * hh + hh + hh * o + o;
-    let params = f(spec.token_dim()) * eh
-        + eh
-        + eh * d
-        + d
-        + transformer_parameters(&cfg.model)
-        + head(d, actor_out)
-        + 2.0 * head(critic_in, critic_out);
-    let (b, t) = (f(cfg.batch_size), cfg.model.max_len as f64);
-    let step_bytes = 4.0 * (f(spec.obs_dim) + a + 3.0) + 15.0;
-    let mut m = crate::guard::MemoryEstimate {
-        levers:
-            "batch_size, model.max_len, model.d_model, model.n_layers, n_envs or replay_capacity"
-                .into(),
-        ..Default::default()
-    };
-    m.add("replay", f(cfg.replay_capacity) * step_bytes);
-    if cfg.device == "cuda" {
-        return m;
-    }
-    m.add("parameters (online and target)", 2.0 * 4.0 * params);
-    m.add("gradients and Adam moments", 3.0 * 4.0 * params);
-    m.add(
-        "one batch's activations",
-        1.5 * transformer_activation_bytes(&cfg.model, b) + 2.0 * 4.0 * b * t * f(spec.token_dim()),
-    );
-    m.add(
-        "acting cache",
-        4.0 * f(cfg.n_envs) * t * (2.0 * cfg.model.n_layers as f64 * d + f(spec.token_dim())),
-    );
-    m
 }

@@ -153,11 +153,11 @@ pub use agent::EppoAgent;
 pub use checkpoint::{drop_replay, recorded_pretrain_tasks};
 pub use collect::{RoundStats, search_rates};
 pub use config::{
-    EppoConfig, EppoError, Exploration, NoveltyBudget, PenaltyForm, PriceChange, memory_estimate,
-    parse_device,
+    EppoConfig, EppoError, Exploration, NoveltyBudget, PenaltyForm, PriceChange, parse_device,
 };
 pub use losses::{UpdateStats, lambda_update};
 pub use multiplier::{ConstraintStart, Multiplier};
+pub use net::memory_estimate;
 pub use net::{EppoNet, NetSpec};
 pub use relabel::{pick_goal, relabel};
 pub use replay::{Replay, Trajectory};

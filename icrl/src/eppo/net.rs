@@ -340,3 +340,57 @@ pub(super) fn tanh_gaussian_sample(
     let log_prob = (log_normal - log_det).sum_dim_intlist(-1, false, Kind::Float);
     (a, log_prob)
 }
+
+/// What a run with `cfg` on spaces `spec` will allocate, by part (checked
+/// against the machine's memory before anything is built). Parameters count
+/// the online and target networks, their gradients and Adam's two moments;
+/// one batch's activations are the transformer's saved tensors for
+/// `batch_size` sequences of `max_len` steps (plus the target's forward); the
+/// acting cache holds keys and values of `n_envs` trajectories. On `cuda`
+/// only the replay (host memory) is counted: the rest lives on the GPU,
+/// whose memory libtorch reports through no API tch binds.
+pub fn memory_estimate(cfg: &EppoConfig, spec: &NetSpec) -> crate::guard::MemoryEstimate {
+    use crate::guard::{transformer_activation_bytes, transformer_parameters};
+    let f = |x: usize| x as f64;
+    let (d, eh, hh) = (
+        cfg.model.d_model as f64,
+        cfg.encoder_hidden as f64,
+        cfg.head_hidden as f64,
+    );
+    let a = f(spec.act_flat());
+    let (actor_out, critic_in, critic_out) = match spec.n_actions {
+        Some(_) => (a, d, cfg.n_critics as f64 * a),
+        None => (2.0 * a, d + a, cfg.n_critics as f64),
+    };
+    let head = |i: f64, o: f64| i * hh + hh + hh * hh + hh + hh * o + o;
+    let params = f(spec.token_dim()) * eh
+        + eh
+        + eh * d
+        + d
+        + transformer_parameters(&cfg.model)
+        + head(d, actor_out)
+        + 2.0 * head(critic_in, critic_out);
+    let (b, t) = (f(cfg.batch_size), cfg.model.max_len as f64);
+    let step_bytes = 4.0 * (f(spec.obs_dim) + a + 3.0) + 15.0;
+    let mut m = crate::guard::MemoryEstimate {
+        levers:
+            "batch_size, model.max_len, model.d_model, model.n_layers, n_envs or replay_capacity"
+                .into(),
+        ..Default::default()
+    };
+    m.add("replay", f(cfg.replay_capacity) * step_bytes);
+    if cfg.device == "cuda" {
+        return m;
+    }
+    m.add("parameters (online and target)", 2.0 * 4.0 * params);
+    m.add("gradients and Adam moments", 3.0 * 4.0 * params);
+    m.add(
+        "one batch's activations",
+        1.5 * transformer_activation_bytes(&cfg.model, b) + 2.0 * 4.0 * b * t * f(spec.token_dim()),
+    );
+    m.add(
+        "acting cache",
+        4.0 * f(cfg.n_envs) * t * (2.0 * cfg.model.n_layers as f64 * d + f(spec.token_dim())),
+    );
+    m
+}

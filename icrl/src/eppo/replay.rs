@@ -12,7 +12,7 @@ use tch::{Device, Tensor};
 
 use safety_envs::{GoalRule, GoalShown};
 
-use super::config::{EppoConfig, NoveltyBudget};
+use super::config::{EppoConfig, NoveltyBudget, PenaltyForm, PriceChange};
 use super::net::NetSpec;
 use crate::signals::{CostMemory, position_cell};
 use crate::tokens::{self, StepToken};
@@ -765,4 +765,56 @@ fn td_masks(
     // binds each episode on its own (Eq. 6, 7).
     let episode_ends = t.terminated[step] || t.truncated[step];
     (has_target, bootstraps, bootstraps && !episode_ends)
+}
+
+/// The critics' shaping over training, owned here beside what applies it.
+impl EppoConfig {
+    /// The price per unit of excess cost `updates_constrained` updates after
+    /// the constraint came on (`over_budget_price_schedule`).
+    pub fn over_budget_price(&self, updates_constrained: u64) -> f64 {
+        let mut reached = PriceChange {
+            after: 0,
+            price: self.over_budget_cost_price,
+        };
+        for &next in &self.over_budget_price_schedule {
+            if updates_constrained < next.after {
+                return reached.price;
+            }
+            reached = next;
+        }
+        reached.price
+    }
+
+    /// What the critics' rewards carry at update `updates` beyond the
+    /// collected reward. The over-budget reward (Saute's, the excess price)
+    /// starts with the constraint (`constrained_since`: the update it came
+    /// on at), as the multiplier does.
+    pub(super) fn shaping(&self, updates: u64, constrained_since: Option<u64>) -> Shaping {
+        let Some(since) = constrained_since else {
+            return Shaping {
+                novelty: self.novelty_bonus as f32,
+                ..Shaping::default()
+            };
+        };
+        let cost_price = self.over_budget_price(updates.saturating_sub(since)) as f32;
+        Shaping {
+            novelty: self.novelty_bonus as f32,
+            budget: match self.penalty {
+                PenaltyForm::Saute => BudgetInTargets::OverBudget(OverBudget {
+                    replaced_reward: Some(self.saute_unsafe_reward as f32),
+                    cost_price,
+                    pays_novelty: false,
+                }),
+                PenaltyForm::Excess => BudgetInTargets::OverBudget(OverBudget {
+                    replaced_reward: None,
+                    cost_price,
+                    pays_novelty: self.novelty_budget != NoveltyBudget::WithinBudget,
+                }),
+                PenaltyForm::Terminate => {
+                    BudgetInTargets::EndsValue(self.termination_reward as f32)
+                }
+                PenaltyForm::Hindsight | PenaltyForm::Hinge => BudgetInTargets::Absent,
+            },
+        }
+    }
 }
