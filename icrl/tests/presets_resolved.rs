@@ -9,23 +9,12 @@ use std::path::Path;
 
 use icrl::eppo::EppoConfig;
 
-/// Every leaf of a TOML table as `a.b = value`, so that a setting moved
-/// into a section compares by its flat name after the recorded ones are
-/// renamed.
-fn leaves(prefix: &str, table: &toml::Table, out: &mut BTreeMap<String, String>) {
-    for (key, value) in table {
-        let name = if prefix.is_empty() {
-            key.clone()
-        } else {
-            format!("{prefix}.{key}")
-        };
-        match value {
-            toml::Value::Table(t) => leaves(&name, t, out),
-            v => {
-                out.insert(name, v.to_string());
-            }
-        }
-    }
+/// Every leaf of a TOML table by its flat name (`a.b`), so that a setting
+/// moved into a section compares with the recorded one after renaming.
+fn leaves(table: &toml::Table) -> BTreeMap<String, String> {
+    let mut out = Vec::new();
+    icrl::cli::pretrain::flatten("", table, &mut out);
+    out.into_iter().collect()
 }
 
 #[test]
@@ -50,10 +39,7 @@ fn every_eppo_preset_resolves_to_its_recorded_settings() {
                 .unwrap_or_else(|e| panic!("{}: {e}", path.display()))
                 .parse()
                 .unwrap();
-            let (mut now, mut then) = (BTreeMap::new(), BTreeMap::new());
-            leaves("", &text.parse().unwrap(), &mut now);
-            leaves("", &recorded, &mut then);
-            assert_eq!(now, then, "{name}");
+            assert_eq!(leaves(&text.parse().unwrap()), leaves(&recorded), "{name}");
             compared += 1;
         }
     }

@@ -349,7 +349,7 @@ fn setting_changes(saved: &toml::Table, now: &toml::Table) -> Vec<(String, Strin
 }
 
 /// `(dotted.key, value)` for every leaf of a TOML table.
-pub(crate) fn flatten(prefix: &str, table: &toml::Table, out: &mut Vec<(String, String)>) {
+pub fn flatten(prefix: &str, table: &toml::Table, out: &mut Vec<(String, String)>) {
     for (k, v) in table {
         let key = if prefix.is_empty() {
             k.clone()

@@ -315,10 +315,15 @@ impl Learner {
         // The multiplier prices the costs the policy really paid: a
         // relabelled episode cut at its new goal holds only part of them.
         let violations: Vec<f32> = sampled.iter().map(|t| t.max_violation()).collect();
-        let excess: Vec<Vec<f32>> = sampled
-            .iter()
-            .map(|t| t.episode_costs.iter().map(|c| c - t.budget).collect())
-            .collect();
+        // Eq. (6)'s per-episode excess, only where its multipliers are on.
+        let excess: Vec<Vec<f32>> = if self.cfg.per_episode_multipliers {
+            sampled
+                .iter()
+                .map(|t| t.episode_costs.iter().map(|c| c - t.budget).collect())
+                .collect()
+        } else {
+            Vec::new()
+        };
         // Eq. (6): each step's hindsight flag carries its own episode's
         // multiplier, and the losses' lambda is 1.
         let (batch, lambda) = if self.cfg.per_episode_multipliers {
