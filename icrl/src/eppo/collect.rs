@@ -338,14 +338,6 @@ impl Collector<'_> {
                 ..Default::default()
             })
             .collect();
-        // Drawn only for a share below 1, so fully scripted runs keep their stream.
-        let scripted: Vec<bool> = (0..n)
-            .map(|_| {
-                self.cfg.scripted_first_episode
-                    && (self.cfg.scripted_share >= 1.0
-                        || self.rng.r#gen::<f64>() < self.cfg.scripted_share)
-            })
-            .collect();
         // Drawn only while some goal is hidden, so other runs keep their stream.
         let hide_share = self.cfg.hidden_share_at(*self.env_steps);
         let hidden: Vec<bool> = (0..n)
@@ -378,10 +370,7 @@ impl Collector<'_> {
                 .time(|t| &mut t.tokens, || acting.write_tokens(&input));
             let (net, spec, rng) = (self.net, self.spec, &mut *self.rng);
             let eps: Vec<f64> = (0..n)
-                .map(|i| {
-                    let found = trajs[i].episode_success.contains(&true);
-                    exploration.at(trajs[i].len(), horizons[i], eps_scale[i], found)
-                })
+                .map(|i| exploration.at(trajs[i].len(), horizons[i], eps_scale[i]))
                 .collect();
             let (mut net_actions, mut env_actions) = self.times.time(
                 |t| &mut t.acting,
@@ -390,9 +379,9 @@ impl Collector<'_> {
                     Ok(sample_actions(&policy, spec, &eps, false, rng))
                 },
             )?;
-            if scripted.contains(&true) {
+            if self.cfg.scripted_first_episode {
                 let first_episode: Vec<bool> = (0..n)
-                    .map(|i| scripted[i] && active[i] && trajs[i].episode_returns.is_empty())
+                    .map(|i| active[i] && trajs[i].episode_returns.is_empty())
                     .collect();
                 script_actions(
                     venv,

@@ -147,12 +147,6 @@ pub struct EppoConfig {
     /// Epsilon at a trajectory's last step once annealed (absent: `eps_end`).
     #[serde(default)]
     pub eps_last_end: Option<f64>,
-    /// Epsilon's ceiling for the rest of a trajectory once it has reached its
-    /// goal. Noise keyed to the step index alone cannot tell "still
-    /// searching" from "found it, go back": late noise keeps search alive and
-    /// costs revisits (issue 18's runs A and F). Absent: the schedule throughout.
-    #[serde(default)]
-    pub eps_after_success: Option<f64>,
     /// Scale each trajectory's epsilon by its own uniform draw in [0, 1]
     /// (AMAGO's `randomize_eps`): the replay then holds the whole range from
     /// near-on-policy to noisy trajectories.
@@ -192,11 +186,6 @@ pub struct EppoConfig {
     /// measures revisiting alone. Off in every preset.
     #[serde(default)]
     pub scripted_first_episode: bool,
-    /// With `scripted_first_episode`, the share of collected trajectories
-    /// whose first episode is scripted; the others search unaided, so one
-    /// run gathers both the revisits of rung r and the search of rung b.
-    #[serde(default = "default_scripted_share")]
-    pub scripted_share: f64,
     /// An auxiliary loss for pretraining only: a head reads the goal's
     /// position off the trajectory encoding h_t at every step after the
     /// window's first success (the goal then sits in the context, as the
@@ -533,11 +522,6 @@ fn default_entropy_coef_lr() -> f64 {
     0.003
 }
 
-/// Absent from a config: every trajectory's first episode scripted (when on).
-fn default_scripted_share() -> f64 {
-    1.0
-}
-
 /// Absent from a config: one-step TD targets (the paper's).
 fn default_n_step() -> usize {
     1
@@ -583,7 +567,7 @@ pub enum EppoError {
 /// it (`git checkout` it to rerun such a config). A config written before the
 /// removal still loads where it holds one at that value; one that used it is
 /// refused by name.
-pub const RETIRED: [(&str, Option<&str>, &str); 12] = [
+pub const RETIRED: [(&str, Option<&str>, &str); 14] = [
     // The PID Lagrangian (results/eppo_darkroom_budget, issue 18).
     ("lambda_kp", Some("0.0"), PID_AND_LATE_RATE),
     ("lambda_kd", Some("0.0"), PID_AND_LATE_RATE),
@@ -618,12 +602,19 @@ pub const RETIRED: [(&str, Option<&str>, &str); 12] = [
         Some("false"),
         NOVELTY_SHAPES_AND_RAMP,
     ),
+    // Behaviour noise capped once the trajectory has found its goal
+    // (results/eppo_darkroom_budget ls1; a ceiling of 1 caps nothing).
+    ("eps_after_success", Some("1.0"), SEARCH_AND_PRICE_VARIANTS),
+    // A share of the first episodes scripted to the goal, the rest searching
+    // (Point rb4-rb7, Car cb2 and cs9: the car repeated its first episode).
+    ("scripted_share", Some("1.0"), SEARCH_AND_PRICE_VARIANTS),
 ];
 
 const PID_AND_LATE_RATE: &str = "b1f1bdb663c9833aefcfffa79f077dcd3d455b0b";
 const ACTOR_AND_ANNEAL: &str = "db40554803feeb6dadd0adc8842796b03fa193c4";
 const HAZARD_RECALL: &str = "8a5cee241507924037a24029831611b616eec709";
 const NOVELTY_SHAPES_AND_RAMP: &str = "1096eed9892161592b2878611d3cef89371e88d3";
+const SEARCH_AND_PRICE_VARIANTS: &str = "9441cf84b763fafdac321359355efe089241a33d";
 
 /// Drops the [`RETIRED`] settings of `table` that hold their inert value;
 /// refuses one that does not, naming it.
@@ -741,7 +732,6 @@ impl EppoConfig {
             ),
             ("novelty_bonus", self.novelty_bonus, Range::NON_NEGATIVE),
             ("novelty_cell", self.novelty_cell, Range::POSITIVE),
-            ("scripted_share", self.scripted_share, Range::UNIT),
             ("goal_hidden_share", self.goal_hidden_share, Range::UNIT),
             ("hazard_hidden_share", self.hazard_hidden_share, Range::UNIT),
             (
@@ -1008,7 +998,6 @@ impl EppoConfig {
             ("eps_end", Some(self.eps_end)),
             ("eps_last_start", self.eps_last_start),
             ("eps_last_end", self.eps_last_end),
-            ("eps_after_success", self.eps_after_success),
         ] {
             if let Some(v) = v
                 && !(0.0..=1.0).contains(&v)
@@ -1061,21 +1050,14 @@ pub struct Exploration {
     pub first: f64,
     /// Epsilon at its last possible step (K x t_max).
     pub last: f64,
-    /// The ceiling once the trajectory has found its goal (`eps_after_success`).
-    pub after_success: Option<f64>,
 }
 
 impl Exploration {
     /// Epsilon at step `t` of a trajectory of at most `horizon` steps, scaled
-    /// by the trajectory's own draw `scale` (1 without `eps_random_scale`),
-    /// capped by `after_success` once the trajectory has `found` its goal.
-    pub fn at(&self, t: usize, horizon: usize, scale: f64, found: bool) -> f64 {
+    /// by the trajectory's own draw `scale` (1 without `eps_random_scale`).
+    pub fn at(&self, t: usize, horizon: usize, scale: f64) -> f64 {
         let progress = (t as f64 / horizon.max(1) as f64).min(1.0);
-        let scheduled = scale * (self.first + (self.last - self.first) * progress);
-        match self.after_success {
-            Some(ceiling) if found => scheduled.min(ceiling),
-            _ => scheduled,
-        }
+        scale * (self.first + (self.last - self.first) * progress)
     }
 }
 
@@ -1091,7 +1073,6 @@ impl EppoConfig {
                 self.eps_last_start.unwrap_or(self.eps_start),
                 self.eps_last_end.unwrap_or(self.eps_end),
             ),
-            after_success: self.eps_after_success,
         }
     }
 

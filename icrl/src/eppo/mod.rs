@@ -52,8 +52,7 @@
 //! critics only (`dense_reward_coef`; tokens stay sparse; with
 //! `dense_reward_after_goal`, only once a success is in the context, where
 //! the agent can know the goal), a scripted first
-//! episode that shows the goal (`scripted_first_episode`, on a `scripted_share`
-//! of the trajectories), an auxiliary loss
+//! episode that shows the goal (`scripted_first_episode`), an auxiliary loss
 //! that reads the found goal off the trajectory encoding
 //! (`goal_recall_coef`), observations standardised by a random policy's
 //! statistics (`standardise_observations`), SAC's automatic temperature
@@ -68,8 +67,7 @@
 //! and then to read a found one from its context).
 //!
 //! Levers for the budget ladder (results/eppo_darkroom_budget), likewise off
-//! until measured: behaviour noise capped once a trajectory has found its goal
-//! (`eps_after_success`), a critic-only bonus for cells new to the trajectory
+//! until measured: a critic-only bonus for cells new to the trajectory
 //! until its first success (`novelty_bonus`; gated by the budget with `novelty_budget`:
 //! withheld past it, or scaled by the share of it left; learned by critics
 //! of its own that the actor weighs only until its context holds a success,

@@ -119,26 +119,6 @@ fn the_scripted_first_episode_reaches_the_goal_and_relabelled_updates_run() {
     }
     let stats = learner.update().unwrap();
     assert!(stats.value_loss.is_finite() && stats.policy_loss.is_finite());
-    // A share of 0.5: some first episodes are driven to the goal, the rest
-    // are the untrained policy's, which rarely reaches it.
-    let share = EppoConfig {
-        scripted_share: 0.5,
-        n_envs: 8,
-        ..cfg
-    };
-    let mut learner = Learner::new(share.clone(), EnvName::Point).unwrap();
-    let mut venv = training_venv(EnvName::Point, &share);
-    learner.collect(&mut venv).unwrap();
-    let first_found: Vec<bool> = learner
-        .replay
-        .trajectories
-        .iter()
-        .map(|t| t.episode_success[0])
-        .collect();
-    assert!(
-        first_found.contains(&true) && first_found.contains(&false),
-        "{first_found:?}"
-    );
 }
 
 #[test]
@@ -294,10 +274,10 @@ fn exploration_is_bilevel() {
         "annealed, then held"
     );
     // Inside a trajectory: linear from the first to the last step, scaled.
-    assert!((end.at(0, 100, 1.0, false) - 0.4).abs() < 1e-12);
-    assert!((end.at(50, 100, 1.0, false) - 0.2).abs() < 1e-12);
-    assert!(end.at(100, 100, 1.0, false).abs() < 1e-12);
-    assert!((end.at(0, 100, 0.5, false) - 0.2).abs() < 1e-12);
+    assert!((end.at(0, 100, 1.0) - 0.4).abs() < 1e-12);
+    assert!((end.at(50, 100, 1.0) - 0.2).abs() < 1e-12);
+    assert!(end.at(100, 100, 1.0).abs() < 1e-12);
+    assert!((end.at(0, 100, 0.5) - 0.2).abs() < 1e-12);
     // Without the last-step values, epsilon is flat inside a trajectory.
     cfg.eps_last_start = None;
     cfg.eps_last_end = None;
@@ -307,26 +287,6 @@ fn exploration_is_bilevel() {
     assert!(cfg.validate().is_ok());
     cfg.eps_last_end = Some(1.5);
     assert!(refused(&cfg, "eps_last_end"));
-}
-
-#[test]
-fn noise_drops_to_its_ceiling_once_the_goal_is_found() {
-    let mut cfg = tiny();
-    cfg.eps_start = 0.6;
-    cfg.eps_end = 0.6;
-    cfg.eps_after_success = Some(0.5);
-    let e = cfg.exploration(0);
-    assert_eq!(
-        e.at(0, 100, 1.0, false),
-        0.6,
-        "still searching: the schedule"
-    );
-    assert_eq!(e.at(0, 100, 1.0, true), 0.5, "found: the ceiling");
-    assert_eq!(e.at(0, 100, 0.5, true), 0.3, "a ceiling, not a floor");
-    cfg.eps_after_success = None;
-    assert_eq!(cfg.exploration(0).at(0, 100, 1.0, true), 0.6);
-    cfg.eps_after_success = Some(1.5);
-    assert!(refused(&cfg, "eps_after_success"));
 }
 
 #[test]

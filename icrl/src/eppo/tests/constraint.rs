@@ -809,11 +809,17 @@ fn configs_from_before_the_retirement_load_or_are_refused_by_name() {
         format!("{plain:?}"),
         "the same config"
     );
-    for (key, value) in [("lambda_kp", "0.5"), ("violation_signal", "\"late_rate\"")] {
+    for (key, value) in [
+        ("lambda_kp", "0.5"),
+        ("violation_signal", "\"late_rate\""),
+        ("eps_after_success", "0.05"),
+        ("scripted_share", "0.5"),
+    ] {
         let mut used = pe1.clone();
         crate::presets::apply_overrides(&mut used, &[format!("{key}={value}")]).unwrap();
         let err = EppoConfig::from_table("pe1", used).unwrap_err().to_string();
-        assert!(err.contains(key) && err.contains(RETIRED[0].2), "{err}");
+        let (_, _, commit) = RETIRED.iter().find(|(k, _, _)| *k == key).unwrap();
+        assert!(err.contains(key) && err.contains(commit), "{err}");
     }
     let late = table("eppo_darkroom_budget/lr1_late_rate/config.toml");
     let err = EppoConfig::from_table("lr1", late).unwrap_err().to_string();
