@@ -324,7 +324,7 @@ impl Block {
 }
 
 /// Sinusoidal position table, (max_len, D).
-pub(crate) fn sinusoids(max_len: i64, d: i64, device: tch::Device) -> Tensor {
+fn sinusoids(max_len: i64, d: i64, device: tch::Device) -> Tensor {
     let pos = Tensor::arange(max_len, (Kind::Float, device)).unsqueeze(1); // (L, 1)
     let i = Tensor::arange_start_step(0, d, 2, (Kind::Float, device)); // (D/2,)
     let inv_freq = (i * (-(10_000f64.ln()) / d as f64)).exp(); // (D/2,)

@@ -500,13 +500,11 @@ impl Collector<'_> {
     }
 }
 
-/// Per-batch acting state: the KV cache, each trajectory's CTG and step
-/// index within its episode.
+/// Per-batch acting state: the KV cache and each trajectory's CTG.
 pub(super) struct Acting {
     pub(super) cache: KvCache,
     pub(super) budgets: Vec<f32>,
     pub(super) ctg: Vec<f32>,
-    episode_steps: Vec<i64>,
     pub(super) tokens: Vec<f32>,
     pub(super) spec: NetSpec,
     pub(super) cfg: EppoConfig,
@@ -531,7 +529,6 @@ impl Acting {
             cache: net.new_cache(),
             budgets: budgets.to_vec(),
             ctg: budgets.to_vec(),
-            episode_steps: vec![0; budgets.len()],
             tokens: Vec::new(),
             spec: spec.clone(),
             cfg: cfg.clone(),
@@ -539,15 +536,14 @@ impl Acting {
     }
 
     /// Updates each CTG from the step's input (restart at the budget on an
-    /// episode's first step, else decrease by the cost just received), and
-    /// each step index within the episode likewise; returns the CTGs the
-    /// policy sees.
+    /// episode's first step, else decrease by the cost just received) and
+    /// returns the CTGs the policy sees.
     pub(super) fn observe(&mut self, input: &StepInput<'_>) -> Vec<f32> {
         for i in 0..self.budgets.len() {
-            (self.ctg[i], self.episode_steps[i]) = if input.episode_start[i] {
-                (self.budgets[i], 0)
+            self.ctg[i] = if input.episode_start[i] {
+                self.budgets[i]
             } else {
-                (self.ctg[i] - input.cost[i], self.episode_steps[i] + 1)
+                self.ctg[i] - input.cost[i]
             };
         }
         self.ctg.clone()
@@ -593,9 +589,7 @@ impl Acting {
             .view([b as i64, 1, self.spec.token_dim() as i64])
             .to_device(device); // (B, 1, token_dim)
         tch::no_grad(|| {
-            let h = net
-                .encode_step(&x, &self.episode_steps, &mut self.cache)?
-                .squeeze_dim(1); // (B, 1, D) -> (B, D)
+            let h = net.encode_step(&x, &mut self.cache)?.squeeze_dim(1); // (B, 1, D) -> (B, D)
             Ok(match self.spec.n_actions {
                 Some(n) => {
                     let p = net

@@ -196,14 +196,6 @@ pub struct EppoConfig {
     /// policy never reads it. 0: off (the paper).
     #[serde(default)]
     pub goal_recall_coef: f64,
-    /// Standardise the observation entries without finite bounds (Point and
-    /// Car: position, sensors) by the mean and standard deviation of a
-    /// random policy's observations on 20 pretraining tasks, frozen in the
-    /// checkpoint's spec. Raw, the accelerometer's spread (about 9) is 15
-    /// times the position's (0.6) that finding a goal turns on. AD
-    /// standardises with its dataset's statistics likewise. false: raw.
-    #[serde(default)]
-    pub standardise_observations: bool,
     /// The ladder's goal-conditioned rung: the goal's position appended to
     /// every observation (`safety_envs::GoalShown`), so reaching it needs no
     /// memory; its success against the shown-goal rung's separates driving
@@ -244,16 +236,6 @@ pub struct EppoConfig {
     /// from 0 to `hazard_hidden_share`.
     #[serde(default)]
     pub hazard_hidden_ramp: [u64; 2],
-    /// Add to each token's embedding a sinusoid of the step's index within
-    /// its episode (0 at the episode's first step), beside the model's
-    /// position in the whole trajectory. Every robot episode starts from the
-    /// same pose, so going back to a found goal is largely repeating a route
-    /// (results/eppo_point_ladder, "K = 10"): with this, the same moment of
-    /// an earlier episode is one attention match away. AMAGO puts the time
-    /// step in its token likewise. The table holds no weights, so a
-    /// checkpoint may be forked with it switched on. false: off (the paper).
-    #[serde(default)]
-    pub episode_positions: bool,
     /// A dense reward for the critics during pretraining only, after PEARL's
     /// sparse-reward point robot: each step's TD reward also gets this times
     /// the decrease in distance to the goal (potential-based shaping, which
@@ -567,7 +549,7 @@ pub enum EppoError {
 /// it (`git checkout` it to rerun such a config). A config written before the
 /// removal still loads where it holds one at that value; one that used it is
 /// refused by name.
-pub const RETIRED: [(&str, Option<&str>, &str); 14] = [
+pub const RETIRED: [(&str, Option<&str>, &str); 16] = [
     // The PID Lagrangian (results/eppo_darkroom_budget, issue 18).
     ("lambda_kp", Some("0.0"), PID_AND_LATE_RATE),
     ("lambda_kd", Some("0.0"), PID_AND_LATE_RATE),
@@ -608,6 +590,19 @@ pub const RETIRED: [(&str, Option<&str>, &str); 14] = [
     // A share of the first episodes scripted to the goal, the rest searching
     // (Point rb4-rb7, Car cb2 and cs9: the car repeated its first episode).
     ("scripted_share", Some("1.0"), SEARCH_AND_PRICE_VARIANTS),
+    // Observations standardised by a random policy's statistics (Point rn1),
+    // and each step's index within its episode in the token (built for
+    // Point's return trip, never run by a ladder).
+    (
+        "standardise_observations",
+        Some("false"),
+        SEARCH_AND_PRICE_VARIANTS,
+    ),
+    (
+        "episode_positions",
+        Some("false"),
+        SEARCH_AND_PRICE_VARIANTS,
+    ),
 ];
 
 const PID_AND_LATE_RATE: &str = "b1f1bdb663c9833aefcfffa79f077dcd3d455b0b";
@@ -758,12 +753,6 @@ impl EppoConfig {
                 "target_entropy = {t} needs a finite target and a positive starting \
                  entropy_coef (got {}): the weight moves in log space",
                 self.entropy_coef
-            ));
-        }
-        if self.episode_positions && self.model.d_model % 2 != 0 {
-            return bad(format!(
-                "episode_positions = true needs an even model.d_model (sine and cosine pairs), got {}",
-                self.model.d_model
             ));
         }
         if self.dense_reward_after_goal && self.dense_reward_coef == 0.0 {

@@ -54,13 +54,9 @@
 //! the agent can know the goal), a scripted first
 //! episode that shows the goal (`scripted_first_episode`), an auxiliary loss
 //! that reads the found goal off the trajectory encoding
-//! (`goal_recall_coef`), observations standardised by a random policy's
-//! statistics (`standardise_observations`), SAC's automatic temperature
-//! (`target_entropy`: the entropy weight tuned so that a continuous actor
-//! cannot collapse onto its action bounds), a sinusoid of each step's index within its episode
-//! added to the token's embedding (`episode_positions`: every episode starts
-//! from the same pose, so the same moment of a successful episode is the
-//! one to recall) and the goal in the observation (`goal_in_observation`:
+//! (`goal_recall_coef`), SAC's automatic temperature (`target_entropy`:
+//! the entropy weight tuned so that a continuous actor cannot collapse onto
+//! its action bounds) and the goal in the observation (`goal_in_observation`:
 //! driving to a position without recalling it; a diagnostic never evaluated,
 //! unless `goal_hidden_share` hides it in a share of the trajectories that
 //! rises over training, so that one policy learns to drive to a shown goal
@@ -163,7 +159,6 @@ pub use timing::{PhaseTimes, thread_cpu_seconds};
 
 use crate::checkpoint::{MetricsWriter, RunDir};
 use crate::optim::{Adam, AdamConfig};
-use crate::run_summary::random_rollouts;
 use collect::mean;
 use losses::{losses, polyak, tuned_entropy_coef};
 use relabel::relabel_some;
@@ -209,15 +204,8 @@ impl Learner {
         if cfg.torch_threads > 0 {
             tch::set_num_threads(cfg.torch_threads);
         }
-        let mut probe = make_training_env(env, &cfg)?;
-        let mut spec = NetSpec::from_spaces(&probe.observation_space(), &probe.action_space())?;
-        if cfg.standardise_observations {
-            let mut rows = Vec::new();
-            random_rollouts(probe.as_mut(), env, 20, cfg.seed, |obs, _| {
-                rows.extend_from_slice(obs)
-            })?;
-            spec.standardise_with(rows.chunks(spec.obs_dim));
-        }
+        let probe = make_training_env(env, &cfg)?;
+        let spec = NetSpec::from_spaces(&probe.observation_space(), &probe.action_space())?;
         if cfg.scripted_first_episode && probe.goal_seeking_action().is_none() {
             return Err(EppoError::Config(format!(
                 "scripted_first_episode needs an environment with a scripted goal-seeking \

@@ -10,7 +10,7 @@ use tch::{Kind, Tensor, nn, nn::Module};
 use safety_envs::Space;
 
 use super::config::{EppoConfig, EppoError};
-use crate::model::{KvCache, Transformer, sinusoids};
+use crate::model::{KvCache, Transformer};
 use crate::tokens;
 
 /// What the networks read and emit, taken from the environment's spaces.
@@ -29,13 +29,6 @@ pub struct NetSpec {
     /// Continuous action bounds (empty for discrete).
     pub act_low: Vec<f32>,
     pub act_high: Vec<f32>,
-    /// With `standardise_observations`: per-entry mean and scale that map
-    /// the entries without finite bounds to (x - mean) / scale; empty:
-    /// those entries pass through unchanged.
-    #[serde(default)]
-    pub obs_mean: Vec<f32>,
-    #[serde(default)]
-    pub obs_scale: Vec<f32>,
 }
 
 impl NetSpec {
@@ -60,43 +53,23 @@ impl NetSpec {
             n_actions,
             act_low,
             act_high,
-            obs_mean: vec![],
-            obs_scale: vec![],
         })
-    }
-
-    /// Standardises the entries without finite bounds by the mean and
-    /// standard deviation of `rows` (a random policy's observations); an
-    /// entry that did not vary there is only centred.
-    pub fn standardise_with<'a>(&mut self, rows: impl IntoIterator<Item = &'a [f32]>) {
-        let (mean, std) = crate::stats::column_mean_std(rows, self.obs_dim);
-        self.obs_scale = std
-            .into_iter()
-            .map(|s| if s < 1e-3 { 1.0 } else { s })
-            .collect();
-        self.obs_mean = mean;
     }
 
     /// Checks that the bounds have one entry per dimension (a spec read from
     /// a file may not).
     pub fn check(&self) -> Result<(), String> {
         let act = self.n_actions.map_or(self.act_low.len(), |_| 0);
-        let stats = [0, self.obs_dim];
         if self.obs_low.len() != self.obs_dim
             || self.obs_high.len() != self.obs_dim
-            || !stats.contains(&self.obs_mean.len())
-            || self.obs_scale.len() != self.obs_mean.len()
-            || self.obs_scale.iter().any(|&s| !(s.is_finite() && s > 0.0))
             || self.act_high.len() != act
             || self.n_actions == Some(0)
         {
             return Err(format!(
-                "spec sizes disagree: obs_dim {} with {} and {} bounds, {} means and {} scales (positive), {:?} discrete actions, {} and {} action bounds",
+                "spec sizes disagree: obs_dim {} with {} and {} bounds, {:?} discrete actions, {} and {} action bounds",
                 self.obs_dim,
                 self.obs_low.len(),
                 self.obs_high.len(),
-                self.obs_mean.len(),
-                self.obs_scale.len(),
                 self.n_actions,
                 self.act_low.len(),
                 self.act_high.len()
@@ -116,15 +89,13 @@ impl NetSpec {
         tokens::token_dim(self.obs_dim, self.act_flat(), 1)
     }
 
-    /// Observation mapped to [-1, 1] where the bounds are finite, and
-    /// standardised elsewhere when the spec has statistics.
+    /// Observation mapped to [-1, 1] where the bounds are finite (the other
+    /// entries pass through unchanged).
     pub(super) fn normalise_obs(&self, obs: &[f32], out: &mut Vec<f32>) {
         for (i, &x) in obs.iter().enumerate() {
             let (lo, hi) = (self.obs_low[i], self.obs_high[i]);
             if lo.is_finite() && hi.is_finite() && hi > lo {
                 out.push(2.0 * (x - lo) / (hi - lo) - 1.0);
-            } else if let (Some(m), Some(s)) = (self.obs_mean.get(i), self.obs_scale.get(i)) {
-                out.push((x - m) / s);
             } else {
                 out.push(x);
             }
@@ -182,9 +153,6 @@ pub struct EppoNet {
     pub(super) novelty_critic: Option<Head>,
     /// With `goal_recall_coef` > 0: the goal's position (2) from h.
     pub(super) goal_recall: Option<Head>,
-    /// With `episode_positions`: a sinusoid table indexed by the step's
-    /// index within its episode, (max_len, D); no weights.
-    episode_sinusoid: Option<Tensor>,
     n_critics: i64,
 }
 
@@ -227,49 +195,23 @@ impl EppoNet {
             }),
             goal_recall: (cfg.goal_recall_coef > 0.0)
                 .then(|| Head::new(&p / "goal_recall", d, cfg.head_hidden, 2)),
-            episode_sinusoid: cfg
-                .episode_positions
-                .then(|| sinusoids(cfg.model.max_len, d, p.device())),
             n_critics: cfg.n_critics,
         })
     }
 
-    /// Tokens (B, T, token_dim) -> embeddings (B, T, D); `episode_steps`
-    /// (B, T) int64 indexes the episode sinusoid when it is on.
-    fn embed(&self, tokens: &Tensor, episode_steps: impl FnOnce() -> Tensor) -> Tensor {
-        let x = self.enc_2.forward(&self.enc_1.forward(tokens).gelu("none"));
-        match &self.episode_sinusoid {
-            Some(table) => {
-                let steps = episode_steps();
-                let (b, t) = (steps.size()[0], steps.size()[1]);
-                x + table.index_select(0, &steps.view([-1])).view([b, t, -1])
-            }
-            None => x,
-        }
+    /// Tokens (B, T, token_dim) -> embeddings (B, T, D).
+    fn embed(&self, tokens: &Tensor) -> Tensor {
+        self.enc_2.forward(&self.enc_1.forward(tokens).gelu("none"))
     }
 
-    /// Whole sequences: tokens (B, T, token_dim) -> h (B, T, D). Each
-    /// sequence starts a trajectory, so a step's index within its episode
-    /// is its distance to the last start flag (the token's last entry).
+    /// Whole sequences: tokens (B, T, token_dim) -> h (B, T, D).
     pub fn encode(&self, tokens: &Tensor, train: bool) -> Result<Tensor, EppoError> {
-        let x = self.embed(tokens, || episode_steps(tokens));
-        Ok(self.transformer.forward_t(&x, train)?)
+        Ok(self.transformer.forward_t(&self.embed(tokens), train)?)
     }
 
-    /// Next steps after the cached ones: tokens (B, 1, token_dim) and each
-    /// row's step index within its episode (B) -> h (B, 1, D).
-    pub fn encode_step(
-        &self,
-        tokens: &Tensor,
-        episode_steps: &[i64],
-        cache: &mut KvCache,
-    ) -> Result<Tensor, EppoError> {
-        let x = self.embed(tokens, || {
-            Tensor::from_slice(episode_steps)
-                .view([-1, 1])
-                .to_device(tokens.device()) // (B, 1)
-        });
-        Ok(self.transformer.forward_step(&x, cache)?)
+    /// Next steps after the cached ones: tokens (B, 1, token_dim) -> h (B, 1, D).
+    pub fn encode_step(&self, tokens: &Tensor, cache: &mut KvCache) -> Result<Tensor, EppoError> {
+        Ok(self.transformer.forward_step(&self.embed(tokens), cache)?)
     }
 
     /// A fresh KV cache.
@@ -309,19 +251,6 @@ impl EppoNet {
             parts[1].clamp(LOG_STD_MIN, LOG_STD_MAX),
         )
     }
-}
-
-/// Each step's index within its episode, (B, T) int64, from the start
-/// flags in the tokens' last entry; a sequence's first step counts as a
-/// start.
-pub(super) fn episode_steps(tokens: &Tensor) -> Tensor {
-    let (b, t) = (tokens.size()[0], tokens.size()[1]);
-    let index = Tensor::arange(t, (Kind::Int64, tokens.device()))
-        .unsqueeze(0)
-        .expand([b, t], false); // (B, T)
-    let starts = tokens.select(-1, -1).gt(0.5); // (B, T)
-    let last_start = index.where_self(&starts, &index.zeros_like()).cummax(1).0;
-    index - last_start
 }
 
 /// A tanh-squashed Gaussian sample and its log-probability: (a, log_prob) with

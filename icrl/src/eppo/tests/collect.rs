@@ -603,36 +603,6 @@ fn search_rates_count_discovery_and_revisits() {
 }
 
 #[test]
-fn episode_positions_count_steps_from_each_start_and_change_the_encoding() {
-    let mut cfg = tiny();
-    let (learner, _) = tiny_learner(0);
-    let d = learner.spec.token_dim() as i64;
-    // Two sequences of 5 steps: starts at 0 and 3, and at 0 only.
-    let tokens = Tensor::zeros([2, 5, d], (Kind::Float, Device::Cpu));
-    for (row, t) in [(0, 0), (0, 3), (1, 0)] {
-        let _ = tokens.get(row).get(t).get(d - 1).fill_(1.0);
-    }
-    assert_eq!(
-        to_vec(&super::net::episode_steps(&tokens)),
-        vec![0.0, 1.0, 2.0, 0.0, 1.0, 0.0, 1.0, 2.0, 3.0, 4.0]
-    );
-    // The same weights with the sinusoid on encode differently.
-    cfg.episode_positions = true;
-    let mut with = Learner::new(cfg, EnvName::DarkRoom).unwrap();
-    with.vs.copy(&learner.vs).unwrap();
-    let (h0, h1) = tch::no_grad(|| {
-        (
-            learner.net.encode(&tokens, false).unwrap(),
-            with.net.encode(&tokens, false).unwrap(),
-        )
-    });
-    assert!(
-        !h1.allclose(&h0, 1e-4, 1e-4, false),
-        "the sinusoid changed nothing"
-    );
-}
-
-#[test]
 fn continuous_exploration_noise_widens_the_sampled_actions_within_the_box() {
     // Two rows, one action dimension, a near-deterministic policy at 0.5.
     let spec = NetSpec {
@@ -676,40 +646,6 @@ fn continuous_exploration_noise_widens_the_sampled_actions_within_the_box() {
     // The mode ignores epsilon.
     let (net, _) = draw(&[1.0, 1.0], true, 0);
     assert_eq!(net, vec![0.5f32.tanh(); 2]);
-}
-
-/// Standardised observations: the entries without finite bounds are
-/// centred and scaled by a random policy's statistics (the accelerometer's
-/// spread of about 9 comes to 1), the bounded ones keep their [-1, 1] map,
-/// the statistics ride in the checkpoint's spec, and the run is the same
-/// under its seed.
-#[test]
-fn standardised_observations_come_from_a_random_policy_and_stay_fixed() {
-    let mut cfg = EppoConfig {
-        standardise_observations: true,
-        physics_steps_per_action: Some(50),
-        max_episode_steps: 75,
-        ..tiny()
-    };
-    cfg.model.max_len = 150;
-    let learner = Learner::new(cfg.clone(), EnvName::Point).unwrap();
-    let spec = &learner.spec;
-    assert_eq!(spec.obs_mean.len(), 23);
-    spec.check().unwrap();
-    assert!((spec.obs_mean[13] - 9.81).abs() < 0.01, "gravity, constant");
-    assert_eq!(spec.obs_scale[13], 1.0, "a constant entry is only centred");
-    assert!(spec.obs_scale[12] > 3.0, "the accelerometer's spread");
-    let mut obs = vec![0.0f32; 23];
-    obs[12] = spec.obs_mean[12] + spec.obs_scale[12];
-    obs[13] = 9.81;
-    obs[2] = 1.0; // a rotation entry: bounded, mapped to [-1, 1] as before
-    let mut out = Vec::new();
-    spec.normalise_obs(&obs, &mut out);
-    assert!((out[12] - 1.0).abs() < 1e-5 && out[13].abs() < 0.01 && out[2] == 1.0);
-    let again = Learner::new(cfg, EnvName::Point).unwrap();
-    assert_eq!(again.spec, learner.spec, "deterministic under the seed");
-    let plain = Learner::new(tiny(), EnvName::DarkRoom).unwrap();
-    assert!(plain.spec.obs_mean.is_empty(), "off: raw as before");
 }
 
 /// The goal-conditioned rung: every collected observation ends with the

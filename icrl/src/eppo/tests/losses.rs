@@ -159,7 +159,6 @@ fn the_actor_weighs_the_novelty_critics_only_before_a_success() {
         n_actions: None,
         act_low: vec![-1.0; 5],
         act_high: vec![1.0; 5],
-        ..Default::default()
     };
     let (vs, tvs) = (
         nn::VarStore::new(Device::Cpu),
@@ -258,7 +257,6 @@ fn terminated_and_truncated_reach_the_targets_apart() {
         n_actions: Some(2),
         act_low: vec![],
         act_high: vec![],
-        ..Default::default()
     };
     // Episode 0: 2 steps, truncated at 0.9. Episode 1: 2 steps,
     // terminated at the goal, 1.0.
@@ -331,7 +329,6 @@ fn continuous_shapes_and_gradients() {
         n_actions: None,
         act_low: vec![-1.0, -1.0],
         act_high: vec![1.0, 1.0],
-        ..Default::default()
     };
     let vs = nn::VarStore::new(Device::Cpu);
     let net = EppoNet::new(vs.root(), &cfg, &spec).unwrap();

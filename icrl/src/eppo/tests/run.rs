@@ -85,26 +85,12 @@ fn a_checkpoint_without_its_dropped_replay_resumes_with_the_same_weights() {
     std::fs::remove_dir_all(&out).unwrap();
 }
 
+/// Steps one collected trajectory through the KV cache and compares each
+/// step's policy with the whole trajectory's forward.
 #[test]
 fn acting_through_the_cache_matches_the_full_forward() {
     let (mut learner, mut venv) = tiny_learner(3);
-    acting_matches_the_full_forward(&mut learner, &mut venv);
-}
-
-#[test]
-fn acting_with_episode_positions_matches_the_full_forward() {
-    let mut cfg = tiny();
-    cfg.seed = 3;
-    cfg.episode_positions = true;
-    let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
-    let mut venv = training_venv(EnvName::DarkRoom, &cfg);
-    acting_matches_the_full_forward(&mut learner, &mut venv);
-}
-
-/// Steps one collected trajectory through the KV cache and compares each
-/// step's policy with the whole trajectory's forward.
-fn acting_matches_the_full_forward(learner: &mut Learner, venv: &mut VecEnv) {
-    learner.collect(venv).unwrap();
+    learner.collect(&mut venv).unwrap();
     let t = learner.replay.trajectories[0].clone();
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let batch = unshaped_batch(&[&t], &learner.cfg, &learner.spec, &mut rng);
@@ -482,4 +468,30 @@ fn settings_that_would_hang_a_run_are_refused_with_their_bound() {
             cfg.validate().unwrap();
         }
     }
+}
+
+/// A committed checkpoint trained with a retired setting is refused by its
+/// name and the last commit that had it (Point's rn1, whose spec holds the
+/// statistics `standardise_observations` took), while one trained without
+/// it loads: its spec's empty statistics of the time are read past.
+#[test]
+fn a_committed_checkpoint_loads_or_is_refused_by_a_retired_setting() {
+    let ladder = Path::new(env!("CARGO_MANIFEST_DIR")).join("../results/eppo_point_ladder");
+    let rn1 = ladder.join("rn1_shown_goal_standardised/checkpoints/step_2945");
+    let err = EppoAgent::load(&rn1, Device::Cpu)
+        .err()
+        .unwrap()
+        .to_string();
+    assert!(
+        err.contains("standardise_observations = true")
+            && err.contains("9441cf84b763fafdac321359355efe089241a33d"),
+        "{err}"
+    );
+    let pe1 = ladder.join("pe1_scratch_eq7_gate0.7/checkpoints/step_7000");
+    let state = std::fs::read_to_string(pe1.join("state.json")).unwrap();
+    assert!(
+        state.contains("\"obs_mean\": []"),
+        "written before the retirement"
+    );
+    EppoAgent::load(&pe1, Device::Cpu).unwrap();
 }
