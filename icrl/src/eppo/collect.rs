@@ -164,10 +164,7 @@ pub(super) fn new_cells_while_searching(trajs: &[Trajectory], obs_dim: usize, ce
             .collect();
         episodes += searching.iter().skip(1).filter(|&&s| s).count();
         // Arrivals stop at the first success, so episodes after it add nothing.
-        for (step, novel) in novel_arrivals(t, obs_dim, cell, false)
-            .into_iter()
-            .enumerate()
-        {
+        for (step, novel) in novel_arrivals(t, obs_dim, cell).into_iter().enumerate() {
             let k = t.episode[step] as usize;
             if k > 0 && searching.get(k).copied().unwrap_or(false) {
                 cells += f64::from(novel);

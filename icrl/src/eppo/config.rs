@@ -272,22 +272,6 @@ pub struct EppoConfig {
     /// (ps3, ps5, ps7, dn1). After RND's separate intrinsic value head.
     #[serde(default)]
     pub novelty_critic: bool,
-    /// The novelty critics' reward pays the over-budget price too (`penalty =
-    /// "excess"` or `"saute"`): each unit of cost past the episode's budget
-    /// takes the price off the search value as well. With the price in the
-    /// task critics alone, it drove their Q to 0 while the novelty Q stayed
-    /// whole, so before a success the actor searched at any cost (Point,
-    /// results/eppo_point_ladder, pc4).
-    #[serde(default)]
-    pub novelty_pays_price: bool,
-    /// The novelty critics' reward goes on past the trajectory's first
-    /// success (the actor no longer weighs them there). Cut at the success,
-    /// their value drops where a goal is reached, so before a success the
-    /// actor is paid to keep searching rather than to take a goal it meets:
-    /// on Car the novelty Q was 8 times the task Q and the return flat at
-    /// 0.19 (results/eppo_car_ladder, cs6).
-    #[serde(default)]
-    pub novelty_through_success: bool,
     /// How the episode's budget gates the novelty bonus (issue 18). Paid
     /// everywhere, the bonus let search ignore the budget
     /// (results/eppo_darkroom_budget, ex4). Older configs'
@@ -549,7 +533,7 @@ pub enum EppoError {
 /// it (`git checkout` it to rerun such a config). A config written before the
 /// removal still loads where it holds one at that value; one that used it is
 /// refused by name.
-pub const RETIRED: [(&str, Option<&str>, &str); 16] = [
+pub const RETIRED: [(&str, Option<&str>, &str); 18] = [
     // The PID Lagrangian (results/eppo_darkroom_budget, issue 18).
     ("lambda_kp", Some("0.0"), PID_AND_LATE_RATE),
     ("lambda_kd", Some("0.0"), PID_AND_LATE_RATE),
@@ -600,6 +584,18 @@ pub const RETIRED: [(&str, Option<&str>, &str); 16] = [
     ),
     (
         "episode_positions",
+        Some("false"),
+        SEARCH_AND_PRICE_VARIANTS,
+    ),
+    // The novelty critics charged the over-budget price (Point pc5, pc7) and
+    // paid past the first success (Point ps9, ps10, Car cs7).
+    (
+        "novelty_pays_price",
+        Some("false"),
+        SEARCH_AND_PRICE_VARIANTS,
+    ),
+    (
+        "novelty_through_success",
         Some("false"),
         SEARCH_AND_PRICE_VARIANTS,
     ),
@@ -841,25 +837,6 @@ impl EppoConfig {
             return bad(
                 "novelty_critic learns the novelty bonus's value, which is off (novelty_bonus = \
                  0): set novelty_bonus > 0, or drop novelty_critic"
-                    .to_string(),
-            );
-        }
-        if self.novelty_through_success && !self.novelty_critic {
-            return bad(
-                "novelty_through_success pays the novelty bonus past the first success, which \
-                 only the novelty critics may learn (in the reward critics it would tax the \
-                 revisits): set novelty_critic = true, or drop novelty_through_success"
-                    .to_string(),
-            );
-        }
-        if self.novelty_pays_price
-            && !(self.novelty_critic
-                && matches!(self.penalty, PenaltyForm::Excess | PenaltyForm::Saute))
-        {
-            return bad(
-                "novelty_pays_price charges the novelty critics the over-budget price: it needs \
-                 novelty_critic = true and penalty = \"excess\" or \"saute\" (the forms that \
-                 price cost in the critics' reward); set them, or drop novelty_pays_price"
                     .to_string(),
             );
         }

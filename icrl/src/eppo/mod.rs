@@ -67,9 +67,7 @@
 //! until its first success (`novelty_bonus`; gated by the budget with `novelty_budget`:
 //! withheld past it, or scaled by the share of it left; learned by critics
 //! of its own that the actor weighs only until its context holds a success,
-//! with `novelty_critic`, which pay the over-budget price as well with
-//! `novelty_pays_price`, and learn the bonus past the first success with
-//! `novelty_through_success`), the actor's
+//! with `novelty_critic`), the actor's
 //! penalty at decision time,
 //! max(0, Qc - CTG_t), instead of Algorithm 1's hindsight flag
 //! (`penalty = "hinge"`), and no multiplier at all: once an episode has spent

@@ -366,8 +366,7 @@ pub(super) struct Batch {
     /// weight in the actor).
     pub(super) goal_known: Tensor,
     /// With `novelty_critic`: (B, L) the novelty bonus (scaled) that
-    /// `rewards` would otherwise carry, the novelty critics' reward (less
-    /// the over-budget price with `novelty_pays_price`).
+    /// `rewards` would otherwise carry, the novelty critics' reward.
     pub(super) novelty_rewards: Option<Tensor>,
     /// (B, L) 1 where the novelty critics' target bootstraps: `bootstrap`,
     /// but past where the budget ends the value under
@@ -425,15 +424,10 @@ pub(super) fn value_end_steps(t: &Trajectory, repeated: Option<&[bool]>) -> Vec<
 
 /// For each step of `t`, 1 where it arrives in a cell (side `cell`, on the
 /// position at observation indices 0 and 1) that the trajectory has not been
-/// in before, episode starts included, up to its first success (0 after it,
-/// unless `through_success`); 0 elsewhere. The novelty bonus's indicator
+/// in before, episode starts included, up to its first success (0 after
+/// it); 0 elsewhere. The novelty bonus's indicator
 /// ([`EppoConfig::novelty_bonus`]).
-pub(super) fn novel_arrivals(
-    t: &Trajectory,
-    obs_dim: usize,
-    cell: f64,
-    through_success: bool,
-) -> Vec<f32> {
+pub(super) fn novel_arrivals(t: &Trajectory, obs_dim: usize, cell: f64) -> Vec<f32> {
     let key = |o: &[f32]| position_cell(o, cell);
     let mut seen = HashSet::new();
     let mut novel = vec![0f32; t.len()];
@@ -442,7 +436,7 @@ pub(super) fn novel_arrivals(
         if seen.insert(key(&t.next_obs[step * obs_dim..])) {
             *flag = 1.0;
         }
-        if t.rewards[step] > 0.0 && !through_success {
+        if t.rewards[step] > 0.0 {
             break;
         }
     }
@@ -540,12 +534,7 @@ pub(super) fn make_batch(
     for (j, (t, &(s, len))) in trajs.iter().zip(&windows).enumerate() {
         let violated: Vec<bool> = t.episodes_over_budget().collect();
         let novel = if shaping.novelty > 0.0 {
-            novel_arrivals(
-                t,
-                spec.obs_dim,
-                cfg.novelty_cell,
-                cfg.novelty_through_success,
-            )
+            novel_arrivals(t, spec.obs_dim, cfg.novelty_cell)
         } else {
             vec![0.0; t.len()]
         };
@@ -645,12 +634,8 @@ pub(super) fn make_batch(
                     }
                     _ => novelty,
                 };
-                let charged = match over_budget {
-                    Some(o) if budget_spent && cfg.novelty_pays_price => o.cost_price * priced_cost,
-                    _ => 0.0,
-                };
                 rew[k] = priced(0.0) * scale;
-                novelty_rew[k] = (paid - charged) * scale;
+                novelty_rew[k] = paid * scale;
             } else {
                 rew[k] = priced(novelty) * scale;
             }

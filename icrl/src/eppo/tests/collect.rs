@@ -293,14 +293,14 @@ fn exploration_is_bilevel() {
 fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
     let t = cell_walk();
     assert_eq!(
-        novel_arrivals(&t, 2, 1.0, false),
+        novel_arrivals(&t, 2, 1.0),
         // new (4,5); seen (4,4); new (3,4); seen (4,5); new (3,5), the goal;
         // nothing after the first success, new cells included.
         vec![1.0, 0.0, 1.0, 0.0, 1.0, 0.0, 0.0, 0.0]
     );
     // Coarser cells (side 2) hold (3,4) with (4,4) and (3,5) with (4,5).
     assert_eq!(
-        novel_arrivals(&t, 2, 2.0, false),
+        novel_arrivals(&t, 2, 2.0),
         vec![1.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 0.0]
     );
     // Into the critics' rewards only, at the weight given; tokens unchanged.
@@ -388,67 +388,6 @@ fn novelty_critics_take_the_bonus_out_of_the_reward_critics() {
             );
         }
     }
-    // Paying the price, the novelty critics lose it on step 2's two units
-    // of cost past the budget and the reward critics keep theirs.
-    let paying = EppoConfig {
-        novelty_pays_price: true,
-        ..apart.clone()
-    };
-    for (rule, at_step_2) in rules {
-        let (split, paid) = (batch(&apart, rule), batch(&paying, rule));
-        assert_eq!(to_vec(&split.rewards), to_vec(&paid.rewards), "{rule:?}");
-        let charged = if rule.is_some() { 2.0 } else { 0.0 };
-        assert_eq!(
-            to_vec(paid.novelty_rewards.as_ref().unwrap()),
-            [0.1, 0.0, at_step_2 - charged, 0.0, 0.1, 0.0, 0.0, 0.0].map(|b| b * scale),
-            "{rule:?}"
-        );
-    }
-    for (cfg, needs) in [
-        (
-            EppoConfig {
-                novelty_critic: false,
-                ..paying.clone()
-            },
-            "novelty_critic",
-        ),
-        (
-            EppoConfig {
-                penalty: PenaltyForm::Hinge,
-                ..paying.clone()
-            },
-            "penalty",
-        ),
-    ] {
-        let e = cfg.validate().unwrap_err().to_string();
-        assert!(e.contains("novelty_pays_price") && e.contains(needs), "{e}");
-    }
-    let excess = EppoConfig {
-        penalty: PenaltyForm::Excess,
-        over_budget_cost_price: 1.0,
-        lambda_lr: 0.0,
-        ..paying.clone()
-    };
-    excess.validate().unwrap();
-    // Through the success, the novelty critics are paid for the new cells
-    // of episode 2 too, (5,4) at step 5 and (3,3) at step 7; the reward
-    // critics, which the actor follows after a success, are not.
-    let through = EppoConfig {
-        novelty_through_success: true,
-        ..apart.clone()
-    };
-    let (split, past) = (batch(&apart, None), batch(&through, None));
-    assert_eq!(to_vec(&split.rewards), to_vec(&past.rewards));
-    assert_eq!(
-        to_vec(past.novelty_rewards.as_ref().unwrap()),
-        [0.1, 0.0, 0.1, 0.0, 0.1, 0.1, 0.0, 0.1].map(|b| b * scale)
-    );
-    let shared = EppoConfig {
-        novelty_critic: false,
-        ..through.clone()
-    };
-    let e = shared.validate().unwrap_err().to_string();
-    assert!(e.contains("novelty_through_success"), "{e}");
     let mut off = apart.clone();
     off.novelty_bonus = 0.0;
     assert!(refused(&off, "novelty_critic"));
@@ -489,7 +428,7 @@ fn the_repeat_price_charges_only_costs_paid_again_in_a_later_episode() {
     let rewards = |cfg: &EppoConfig| {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let shaping = Shaping {
-            novelty: cfg.novelty_bonus as f32,
+            novelty: 0.0,
             budget: BudgetInTargets::OverBudget(OverBudget {
                 replaced_reward: None,
                 cost_price: 2.0,
@@ -498,11 +437,10 @@ fn the_repeat_price_charges_only_costs_paid_again_in_a_later_episode() {
         };
         let b = make_batch(&[&t], cfg, &spec, shaping, &mut rng, Device::Cpu);
         let scale = cfg.reward_scale as f32;
-        let unscaled = |x: &Tensor| to_vec(x).iter().map(|r| r / scale).collect::<Vec<_>>();
-        (
-            unscaled(&b.rewards),
-            b.novelty_rewards.as_ref().map(unscaled),
-        )
+        to_vec(&b.rewards)
+            .iter()
+            .map(|r| r / scale)
+            .collect::<Vec<_>>()
     };
     let every = EppoConfig {
         penalty: PenaltyForm::Excess,
@@ -516,24 +454,10 @@ fn the_repeat_price_charges_only_costs_paid_again_in_a_later_episode() {
     };
     repeats.validate().unwrap();
     assert_eq!(
-        rewards(&every).0,
+        rewards(&every),
         [-2.0, 0.0, 0.0, -2.0, -1.0, -2.0, -2.0, 0.0]
     );
-    assert_eq!(
-        rewards(&repeats).0,
-        [0.0, 0.0, 0.0, -2.0, 1.0, 0.0, 0.0, 0.0]
-    );
-    // The novelty critics, paying the price, are charged at the repeat alone.
-    let novelty = EppoConfig {
-        novelty_bonus: 0.5,
-        novelty_critic: true,
-        novelty_pays_price: true,
-        ..repeats.clone()
-    };
-    assert_eq!(
-        rewards(&novelty).1.unwrap(),
-        [0.5, 0.0, 0.5, -2.0, 0.5, 0.0, 0.0, 0.0]
-    );
+    assert_eq!(rewards(&repeats), [0.0, 0.0, 0.0, -2.0, 1.0, 0.0, 0.0, 0.0]);
     for (cfg, needs) in [
         (
             EppoConfig {

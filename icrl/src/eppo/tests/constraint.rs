@@ -814,6 +814,7 @@ fn configs_from_before_the_retirement_load_or_are_refused_by_name() {
         ("violation_signal", "\"late_rate\""),
         ("eps_after_success", "0.05"),
         ("scripted_share", "0.5"),
+        ("novelty_through_success", "true"),
     ] {
         let mut used = pe1.clone();
         crate::presets::apply_overrides(&mut used, &[format!("{key}={value}")]).unwrap();
