@@ -16,8 +16,7 @@ pub fn position_cell(obs: &[f32], side: f64) -> (i64, i64) {
 /// Where a trajectory has paid costs, episode by episode, to tell a repeated
 /// cost (paid within `radius` of a cost paid in an earlier episode) from a
 /// first one: in-context safety is not paying twice for one hazard. Shared by
-/// the repeat price (EPPO's `repeat_cost_radius`) and the evaluation's
-/// repeated-cost metric.
+/// EPPO's training metric and the evaluation's repeated-cost metric.
 #[derive(Clone, Debug)]
 pub struct CostMemory {
     radius: f32,

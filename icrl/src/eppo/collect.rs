@@ -14,10 +14,11 @@ use safety_envs::{EnvName, Orientation, VecAction, VecEnv, sample_task, spawn_co
 use super::Learner;
 use super::config::{EppoConfig, EppoError};
 use super::net::{EppoNet, NetSpec};
-use super::replay::{Trajectory, novel_arrivals, push_token, repeated_costs};
+use super::replay::{Trajectory, novel_arrivals, push_token};
 use super::timing::PhaseTimes;
 use crate::agent::StepInput;
 use crate::model::KvCache;
+use crate::signals::CostMemory;
 use crate::task_seeds::pretrain_task_seed;
 
 /// What one collection round gathered.
@@ -176,6 +177,21 @@ pub(super) fn new_cells_while_searching(trajs: &[Trajectory], obs_dim: usize, ce
     } else {
         cells / episodes as f64
     }
+}
+
+/// For each step of `t`, true where it pays a repeated cost ([`CostMemory`]
+/// with `radius`, on the arrival's position).
+pub(super) fn repeated_costs(t: &Trajectory, obs_dim: usize, radius: f64) -> Vec<bool> {
+    let mut memory = CostMemory::new(radius);
+    (0..t.len())
+        .map(|step| {
+            let repeated = t.costs[step] > 0.0 && memory.paid(&t.next_obs[step * obs_dim..]);
+            if t.terminated[step] || t.truncated[step] {
+                memory.end_episode();
+            }
+            repeated
+        })
+        .collect()
 }
 
 /// The mean cost per episode paid again ([`repeated_costs`] with

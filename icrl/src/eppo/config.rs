@@ -286,35 +286,19 @@ pub struct EppoConfig {
     /// which steps), or in the critics' targets (issue 18, issue 19).
     #[serde(default)]
     pub penalty: PenaltyForm,
-    /// `penalty = "saute"`: the critics' reward for every step of an episode
-    /// once its cost has passed its budget, in place of the collected reward
-    /// (OmniSafe's Saute default is -1 per step on dense-reward tasks; the
-    /// goal here is worth 1 once).
-    #[serde(default = "default_saute_unsafe_reward")]
-    pub saute_unsafe_reward: f64,
     /// `penalty = "saute"` or `"excess"`: what each unit of cost paid after
     /// the budget is spent takes off that step's reward (under Saute, on top
-    /// of `saute_unsafe_reward`). 0 is Saute's constant, which leaves nothing
+    /// of its unsafe reward). 0 is Saute's constant, which leaves nothing
     /// to choose between actions once an episode is over budget, so small
     /// budgets came out the most costly (results/eppo_darkroom_budget, sa1).
     #[serde(default, alias = "saute_cost_price")]
     pub over_budget_cost_price: f64,
     /// `penalty = "terminate"`: the reward the critics see on top of the step
-    /// where their value ends: the step that overspends or, under
-    /// `repeat_cost_radius`, an episode's first repeated cost over budget.
-    /// Sun et al.'s r_e, at most 0: every reward here is at least 0, so
-    /// ending the value already costs what the rest of the trajectory was
-    /// worth.
+    /// where their value ends, the step that overspends. Sun et al.'s r_e,
+    /// at most 0: every reward here is at least 0, so ending the value
+    /// already costs what the rest of the trajectory was worth.
     #[serde(default)]
     pub termination_reward: f64,
-    /// `penalty = "terminate"` with `novelty_critic`: the novelty critics'
-    /// value goes on past the step where the budget ends the task critics'.
-    /// Ending both made the agent search less (found by episode 10 0.61 ->
-    /// 0.41-0.44, results/eppo_point_ladder, pt1 and pt4): a search that
-    /// overspent lost what its later search was worth, not only its goal.
-    /// Measured on Point, no difference (pt5: the same decline as pt1).
-    #[serde(default)]
-    pub termination_spares_search: bool,
     /// Later prices: each `{ after = N, price = P }` charges P per unit of
     /// excess cost from N updates past the constraint's start on (N rising).
     /// A price high enough to make the budget bind at the start stops search
@@ -324,23 +308,6 @@ pub struct EppoConfig {
     /// dw1 -> dw1p -> dw1q).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub over_budget_price_schedule: Vec<PriceChange>,
-    /// `penalty = "excess"`: when > 0, the price falls only on repeated
-    /// costs, those paid within this distance (of the position at
-    /// observation indices 0 and 1) of where the trajectory paid a cost in
-    /// an earlier episode; costs met for the first time stay free.
-    /// `penalty = "terminate"`: the value ends at an episode's first repeated
-    /// cost over budget instead of at the step that overspends (on Point no
-    /// measured difference: most over-budget costs are repeats,
-    /// results/eppo_point_ladder, pt4). With the
-    /// lidar off, a robot learns where the hazards are only by entering
-    /// them, and pricing those first costs priced search: return fell and
-    /// cost did not (Point, pc1-pc6). Yet 77% of the cost ps9 paid at
-    /// episode 10 was in hazards it had paid for earlier in the same
-    /// trajectory (results/eppo_point_ladder): that is the cost an
-    /// in-context learner can avoid. 0.4 (a hazard's diameter) tells a
-    /// repeat from a new hazard on the robots. 0: every cost (the paper).
-    #[serde(default)]
-    pub repeat_cost_radius: f64,
 
     // The loop's shape (issue 20): both together, so merges stay simple.
     /// Collect and learn at once on two threads (`overlap.rs`): an actor
@@ -417,11 +384,11 @@ pub enum PenaltyForm {
     Hinge,
     /// Saute RL (Sootla et al., ICML 2022): no multiplier and no actor
     /// penalty. The remaining budget is already in every token (CTG_t), and
-    /// once an episode's cost passes its budget the critics see
-    /// `saute_unsafe_reward` (less `saute_cost_price` per unit of cost) on
-    /// each of its remaining steps instead of the reward, goal included:
-    /// overspending loses the episode, whatever lambda would have been on
-    /// this training seed.
+    /// once an episode's cost passes its budget the critics see an unsafe
+    /// reward of -0.1, a tenth of a goal (less `over_budget_cost_price` per
+    /// unit of cost), on each of its remaining steps instead of the reward,
+    /// goal included: overspending loses the episode, whatever lambda would
+    /// have been on this training seed.
     Saute,
     /// The exact penalty at a fixed price, charged where it is incurred: no
     /// multiplier and no actor penalty; every unit of cost paid past the
@@ -467,11 +434,6 @@ fn ramp_at([from, until]: [u64; 2], env_steps: u64) -> f64 {
     } else {
         (env_steps - from) as f64 / (until - from) as f64
     }
-}
-
-/// Absent from a config: a tenth of a goal per step once the budget is spent.
-fn default_saute_unsafe_reward() -> f64 {
-    -0.1
 }
 
 /// Absent from a config: 20 rounds in the revisit gate's average.
@@ -528,12 +490,12 @@ pub enum EppoError {
 }
 
 /// Settings tried by a ladder, measured as not helping, and removed with
-/// their code: each with the value at which it did nothing (`None`: it
-/// acted only through another retired setting) and the last commit that had
-/// it (`git checkout` it to rerun such a config). A config written before the
+/// their code: each with the value at which it did nothing, or that the code
+/// now holds fixed (`None`: it acted only through another retired setting),
+/// and the last commit that had it (`git checkout` it to rerun such a config). A config written before the
 /// removal still loads where it holds one at that value; one that used it is
 /// refused by name.
-pub const RETIRED: [(&str, Option<&str>, &str); 18] = [
+pub const RETIRED: [(&str, Option<&str>, &str); 21] = [
     // The PID Lagrangian (results/eppo_darkroom_budget, issue 18).
     ("lambda_kp", Some("0.0"), PID_AND_LATE_RATE),
     ("lambda_kd", Some("0.0"), PID_AND_LATE_RATE),
@@ -599,6 +561,21 @@ pub const RETIRED: [(&str, Option<&str>, &str); 18] = [
         Some("false"),
         SEARCH_AND_PRICE_VARIANTS,
     ),
+    // Saute's unsafe reward other than its default -0.1, now fixed
+    // (results/eppo_darkroom_budget sa3-sa5).
+    (
+        "saute_unsafe_reward",
+        Some("-0.1"),
+        SEARCH_AND_PRICE_VARIANTS,
+    ),
+    // The termination sparing the novelty critics' value (Point pt5), and the
+    // price or termination narrowed to repeated costs (Point pc7, pt4).
+    (
+        "termination_spares_search",
+        Some("false"),
+        SEARCH_AND_PRICE_VARIANTS,
+    ),
+    ("repeat_cost_radius", Some("0.0"), SEARCH_AND_PRICE_VARIANTS),
 ];
 
 const PID_AND_LATE_RATE: &str = "b1f1bdb663c9833aefcfffa79f077dcd3d455b0b";
@@ -726,11 +703,6 @@ impl EppoConfig {
             ("goal_hidden_share", self.goal_hidden_share, Range::UNIT),
             ("hazard_hidden_share", self.hazard_hidden_share, Range::UNIT),
             (
-                "saute_unsafe_reward",
-                self.saute_unsafe_reward,
-                Range::new(f64::NEG_INFINITY, true, 0.0, false),
-            ),
-            (
                 "over_budget_cost_price",
                 self.over_budget_cost_price,
                 Range::NON_NEGATIVE,
@@ -840,23 +812,6 @@ impl EppoConfig {
                     .to_string(),
             );
         }
-        if !(self.repeat_cost_radius.is_finite() && self.repeat_cost_radius >= 0.0) {
-            return bad(format!(
-                "repeat_cost_radius must be a finite distance >= 0 (0: the price falls on every \
-                 cost), got {}",
-                self.repeat_cost_radius
-            ));
-        }
-        if self.termination_spares_search
-            && !(self.penalty == PenaltyForm::Terminate && self.novelty_critic)
-        {
-            return bad(
-                "termination_spares_search keeps the novelty critics' value past the step where \
-                 penalty = \"terminate\" ends the task critics': set penalty = \"terminate\" and \
-                 novelty_critic = true, or termination_spares_search = false"
-                    .to_string(),
-            );
-        }
         if self.goal_hidden_share > 0.0 && !self.goal_in_observation {
             return bad(
                 "goal_hidden_share > 0 hides the goal slots of goal_in_observation in some \
@@ -887,16 +842,6 @@ impl EppoConfig {
                 "hazard_hidden_ramp = {:?} must rise ([from, until] environment steps, from <= until)",
                 self.hazard_hidden_ramp
             ));
-        }
-        if self.repeat_cost_radius > 0.0
-            && !matches!(self.penalty, PenaltyForm::Excess | PenaltyForm::Terminate)
-        {
-            return bad(
-                "repeat_cost_radius > 0 narrows the over-budget price of penalty = \"excess\", \
-                 or the termination of penalty = \"terminate\", to repeated costs: set one of \
-                 them, or set repeat_cost_radius = 0"
-                    .to_string(),
-            );
         }
         if self.novelty_budget == NoveltyBudget::WithinBudget && self.penalty != PenaltyForm::Excess
         {

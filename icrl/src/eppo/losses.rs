@@ -264,14 +264,13 @@ fn td_targets(
     };
     let y = targets(&batch.rewards, &batch.bootstrap, &v);
     let yc = targets(&batch.costs, &batch.cost_bootstrap, &vc);
-    // The novelty critics bootstrap as the reward critics do (but past a
-    // termination with `termination_spares_search`); their reward stops at
-    // the trajectory's first success.
+    // The novelty critics bootstrap as the reward critics do; their reward
+    // stops at the trajectory's first success.
     let yn = batch
         .novelty_rewards
         .as_ref()
         .zip(vn.as_ref())
-        .map(|(r, v)| targets(r, &batch.novelty_bootstrap, v));
+        .map(|(r, v)| targets(r, &batch.bootstrap, v));
     Ok((y, yc, yn))
 }
 

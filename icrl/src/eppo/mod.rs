@@ -71,8 +71,8 @@
 //! penalty at decision time,
 //! max(0, Qc - CTG_t), instead of Algorithm 1's hindsight flag
 //! (`penalty = "hinge"`), and no multiplier at all: once an episode has spent
-//! its budget, the critics' reward for its remaining steps is
-//! `saute_unsafe_reward` (`penalty = "saute"`, after Saute RL) or the usual
+//! its budget, the critics' reward for its remaining steps is a fixed
+//! unsafe reward (`penalty = "saute"`, after Saute RL) or the usual
 //! reward (`penalty = "excess"`: Eq. (5)'s exact penalty with lambda fixed),
 //! less `over_budget_cost_price` per unit of cost, so the price of
 //! overspending does not depend on where an integrator settles on a given
@@ -421,17 +421,10 @@ impl Learner {
             PenaltyForm::Excess | PenaltyForm::Saute => {
                 format!("over-budget price {:.2}", self.over_budget_price())
             }
-            PenaltyForm::Terminate => {
-                let cut = if self.cfg.repeat_cost_radius > 0.0 {
-                    "a repeated cost over budget"
-                } else {
-                    "overspending"
-                };
-                format!(
-                    "{cut} ends the value (termination reward {:.2})",
-                    self.cfg.termination_reward
-                )
-            }
+            PenaltyForm::Terminate => format!(
+                "overspending ends the value (termination reward {:.2})",
+                self.cfg.termination_reward
+            ),
             PenaltyForm::Hindsight | PenaltyForm::Hinge => {
                 format!("lambda {:.4}", self.multiplier.lambda)
             }

@@ -14,7 +14,7 @@ use safety_envs::{GoalRule, GoalShown};
 
 use super::config::{EppoConfig, NoveltyBudget, PenaltyForm, PriceChange};
 use super::net::NetSpec;
-use crate::signals::{CostMemory, position_cell};
+use crate::signals::position_cell;
 use crate::tokens::{self, StepToken};
 
 /// K episodes in one task with one budget, as collected.
@@ -366,12 +366,9 @@ pub(super) struct Batch {
     /// weight in the actor).
     pub(super) goal_known: Tensor,
     /// With `novelty_critic`: (B, L) the novelty bonus (scaled) that
-    /// `rewards` would otherwise carry, the novelty critics' reward.
+    /// `rewards` would otherwise carry, the novelty critics' reward (their
+    /// targets bootstrap as `bootstrap` says).
     pub(super) novelty_rewards: Option<Tensor>,
-    /// (B, L) 1 where the novelty critics' target bootstraps: `bootstrap`,
-    /// but past where the budget ends the value under
-    /// `termination_spares_search`.
-    pub(super) novelty_bootstrap: Tensor,
 }
 
 /// The critics' pretraining-only dense reward for step `step` of `t`:
@@ -389,31 +386,16 @@ fn dense_reward(t: &Trajectory, step: usize, spec: &NetSpec, cfg: &EppoConfig) -
     cfg.dense_reward_coef as f32 * progress
 }
 
-/// For each step of `t`, true where it pays a repeated cost ([`CostMemory`]
-/// with `radius`, on the arrival's position).
-pub(super) fn repeated_costs(t: &Trajectory, obs_dim: usize, radius: f64) -> Vec<bool> {
-    let mut memory = CostMemory::new(radius);
-    (0..t.len())
-        .map(|step| {
-            let repeated = t.costs[step] > 0.0 && memory.paid(&t.next_obs[step * obs_dim..]);
-            if t.terminated[step] || t.truncated[step] {
-                memory.end_episode();
-            }
-            repeated
-        })
-        .collect()
-}
-
 /// For each step of `t`, true where the termination ends the critics'
 /// value ([`EppoConfig::termination_reward`]): in each episode, the first step
-/// over budget that pays a cost that counts, every cost or, given `repeated`,
-/// a repeated one. Without `repeated` that is the step that overspends.
-pub(super) fn value_end_steps(t: &Trajectory, repeated: Option<&[bool]>) -> Vec<bool> {
+/// over budget that pays a cost, the step that overspends.
+pub(super) fn value_end_steps(t: &Trajectory) -> Vec<bool> {
     let mut ended_in = None;
     (0..t.len())
         .map(|step| {
-            let counts = repeated.map_or(t.costs[step] > 0.0, |r| r[step]);
-            let ends = t.budget_spent_after(step) && counts && ended_in != Some(t.episode[step]);
+            let ends = t.budget_spent_after(step)
+                && t.costs[step] > 0.0
+                && ended_in != Some(t.episode[step]);
             if ends {
                 ended_in = Some(t.episode[step]);
             }
@@ -464,9 +446,8 @@ pub(super) enum BudgetInTargets {
     /// once its cost has passed its budget (CTG after the step below 0).
     OverBudget(OverBudget),
     /// `penalty = "terminate"`: the reward added where an episode's cost
-    /// first passes its budget (under a repeat radius, at its first repeated
-    /// cost over budget), the step at which the reward and novelty critics'
-    /// value ends.
+    /// first passes its budget, the step at which the reward and novelty
+    /// critics' value ends.
     EndsValue(f32),
 }
 
@@ -525,7 +506,6 @@ pub(super) fn make_batch(
     let mut valid = vec![0f32; b * l];
     let mut td_valid = vec![0f32; b * l];
     let mut boot = vec![0f32; b * l];
-    let mut novelty_boot = vec![0f32; b * l];
     let mut cost_boot = vec![0f32; b * l];
     let mut goal_known = vec![0f32; b * l];
     let zeros_a = vec![0f32; a];
@@ -538,13 +518,9 @@ pub(super) fn make_batch(
         } else {
             vec![0.0; t.len()]
         };
-        // Under a repeat radius, the steps whose cost the price or the
-        // termination may act on.
-        let repeated = (cfg.repeat_cost_radius > 0.0)
-            .then(|| repeated_costs(t, spec.obs_dim, cfg.repeat_cost_radius));
         let value_ends = shaping
             .value_end_reward()
-            .map(|end_reward| (end_reward, value_end_steps(t, repeated.as_deref())));
+            .map(|end_reward| (end_reward, value_end_steps(t)));
         // The goal is known once found, or throughout when shown.
         let mut found =
             cfg.goal_in_observation && t.obs.get(..spec.obs_dim).is_some_and(GoalShown::shows);
@@ -601,10 +577,6 @@ pub(super) fn make_batch(
                 dense_reward(t, step, spec, cfg)
             };
             let budget_spent = t.budget_spent_after(step);
-            let priced_cost = match &repeated {
-                Some(repeated) if !repeated[step] => 0.0,
-                _ => t.costs[step],
-            };
             let share = match cfg.novelty_budget {
                 NoveltyBudget::RemainingShare => (t.ctg[step] / t.budget).clamp(0.0, 1.0),
                 NoveltyBudget::Always | NoveltyBudget::WithinBudget => 1.0,
@@ -621,7 +593,7 @@ pub(super) fn make_batch(
                         } else {
                             shaped - bonus
                         };
-                        o.replaced_reward.unwrap_or(kept) - o.cost_price * priced_cost
+                        o.replaced_reward.unwrap_or(kept) - o.cost_price * t.costs[step]
                     }
                     _ => shaped,
                 }
@@ -651,17 +623,14 @@ pub(super) fn make_batch(
             goal_known[k] = if found { 1.0 } else { 0.0 };
             found |= t.terminated[step];
             let (has_target, mut bootstraps, cost_bootstraps) = td_masks(cfg, t, step, i + 1 < len);
-            let mut novelty_bootstraps = bootstraps;
             if let Some((end_reward, ends)) = &value_ends
                 && ends[step]
             {
                 rew[k] += end_reward * scale;
                 bootstraps = false;
-                novelty_bootstraps = cfg.termination_spares_search;
             }
             td_valid[k] = if has_target { 1.0 } else { 0.0 };
             boot[k] = if bootstraps { 1.0 } else { 0.0 };
-            novelty_boot[k] = if novelty_bootstraps { 1.0 } else { 0.0 };
             cost_boot[k] = if cost_bootstraps { 1.0 } else { 0.0 };
         }
     }
@@ -694,7 +663,6 @@ pub(super) fn make_batch(
             .to_device(device),
         goal_known: f(&goal_known),
         novelty_rewards: cfg.novelty_critic.then(|| f(&novelty_rew)),
-        novelty_bootstrap: f(&novelty_boot),
     }
 }
 
@@ -752,6 +720,12 @@ fn td_masks(
     (has_target, bootstraps, bootstraps && !episode_ends)
 }
 
+/// `penalty = "saute"`: the critics' reward for every step of an episode
+/// once its cost has passed its budget, in place of the collected reward: a
+/// tenth of a goal (OmniSafe's Saute default is -1 per step on dense-reward
+/// tasks; the goal here is worth 1 once).
+const SAUTE_UNSAFE_REWARD: f32 = -0.1;
+
 /// The critics' shaping over training, owned here beside what applies it.
 impl EppoConfig {
     /// The price per unit of excess cost `updates_constrained` updates after
@@ -786,7 +760,7 @@ impl EppoConfig {
             novelty: self.novelty_bonus as f32,
             budget: match self.penalty {
                 PenaltyForm::Saute => BudgetInTargets::OverBudget(OverBudget {
-                    replaced_reward: Some(self.saute_unsafe_reward as f32),
+                    replaced_reward: Some(SAUTE_UNSAFE_REWARD),
                     cost_price,
                     pays_novelty: false,
                 }),

@@ -393,13 +393,13 @@ fn novelty_critics_take_the_bonus_out_of_the_reward_critics() {
     assert!(refused(&off, "novelty_critic"));
 }
 
-/// Under the repeat price, a cost paid where the trajectory paid one in an
-/// earlier episode is charged, and a first one is not: in `cell_walk`, step
-/// 3 re-enters episode 0's costly (4,5); steps 4 and 5 meet new costs, and
+/// The training metrics of safety: a cost counts as paid again where the
+/// trajectory paid one in an earlier episode (in `cell_walk`, step 3
+/// re-enters episode 0's costly (4,5); steps 4 and 5 meet new costs, and
 /// step 6 repeats step 5 inside one episode, which is not yet learning from
-/// context. Dropping the rule charges all five.
+/// context), and the share of last episodes over budget.
 #[test]
-fn the_repeat_price_charges_only_costs_paid_again_in_a_later_episode() {
+fn repeated_costs_are_those_paid_again_in_a_later_episode() {
     let mut t = cell_walk();
     for step in [0, 3, 4, 5, 6] {
         t.costs[step] = 1.0;
@@ -424,60 +424,6 @@ fn the_repeat_price_charges_only_costs_paid_again_in_a_later_episode() {
     assert_eq!(last_over_budget(&[over.clone(), cell_walk()]), 0.5);
     over.episode_costs[2] = 1.0;
     assert_eq!(last_over_budget(&[over]), 0.0);
-    let spec = grid_spec();
-    let rewards = |cfg: &EppoConfig| {
-        let mut rng = ChaCha8Rng::seed_from_u64(0);
-        let shaping = Shaping {
-            novelty: 0.0,
-            budget: BudgetInTargets::OverBudget(OverBudget {
-                replaced_reward: None,
-                cost_price: 2.0,
-                pays_novelty: true,
-            }),
-        };
-        let b = make_batch(&[&t], cfg, &spec, shaping, &mut rng, Device::Cpu);
-        let scale = cfg.reward_scale as f32;
-        to_vec(&b.rewards)
-            .iter()
-            .map(|r| r / scale)
-            .collect::<Vec<_>>()
-    };
-    let every = EppoConfig {
-        penalty: PenaltyForm::Excess,
-        over_budget_cost_price: 2.0,
-        lambda_lr: 0.0,
-        ..tiny()
-    };
-    let repeats = EppoConfig {
-        repeat_cost_radius: 0.5,
-        ..every.clone()
-    };
-    repeats.validate().unwrap();
-    assert_eq!(
-        rewards(&every),
-        [-2.0, 0.0, 0.0, -2.0, -1.0, -2.0, -2.0, 0.0]
-    );
-    assert_eq!(rewards(&repeats), [0.0, 0.0, 0.0, -2.0, 1.0, 0.0, 0.0, 0.0]);
-    for (cfg, needs) in [
-        (
-            EppoConfig {
-                penalty: PenaltyForm::Hindsight,
-                over_budget_cost_price: 0.0,
-                ..repeats.clone()
-            },
-            "penalty = \"excess\"",
-        ),
-        (
-            EppoConfig {
-                repeat_cost_radius: -0.4,
-                ..every.clone()
-            },
-            ">= 0",
-        ),
-    ] {
-        let e = cfg.validate().unwrap_err().to_string();
-        assert!(e.contains("repeat_cost_radius") && e.contains(needs), "{e}");
-    }
 }
 
 #[test]

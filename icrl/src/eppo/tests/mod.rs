@@ -15,12 +15,10 @@ use safety_envs::{EnvName, Orientation, VecEnv, sample_task, spawn_config};
 
 use super::collect::{
     Acting, EnvActions, GoalSlotStats, Policy, last_over_budget, new_cells_while_searching,
-    repeat_cost_per_episode, sample_actions,
+    repeat_cost_per_episode, repeated_costs, sample_actions,
 };
 use super::losses::{goal_recall_loss, losses, n_step_targets, penalised_cost, tuned_entropy_coef};
-use super::replay::{
-    Batch, BudgetInTargets, OverBudget, Shaping, make_batch, novel_arrivals, repeated_costs,
-};
+use super::replay::{Batch, BudgetInTargets, OverBudget, Shaping, make_batch, novel_arrivals};
 use super::*;
 use crate::agent::{Actions, Conditioning, InContextAgent, StepInput};
 use crate::model::Positions;
