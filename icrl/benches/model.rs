@@ -23,7 +23,7 @@ use std::time::Instant;
 
 use icrl::eppo::{EppoConfig, Learner, PretrainOptions, Trajectory, train};
 use icrl::model::Transformer;
-use icrl::presets::{apply_overrides, preset_table, resolve};
+use icrl::presets::preset_table;
 use rand::{Rng, SeedableRng};
 use safety_envs::{EnvName, EnvOptions, VecEnv, make_env};
 use tch::{Device, Kind, Tensor, nn};
@@ -78,15 +78,18 @@ fn config(preset: &str, sets: &[&str]) -> EppoConfig {
 fn env_config(env: &str, preset: &str, sets: &[&str]) -> EppoConfig {
     let mut table = preset_table("eppo", env, preset).expect("built-in preset");
     let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
-    apply_overrides(&mut table, &sets).expect("valid overrides");
-    resolve(preset, table).expect("valid preset")
+    EppoConfig::apply_sets(&mut table, &sets).expect("valid overrides");
+    EppoConfig::from_table(preset, table).expect("valid preset")
 }
 
 fn kv_cache_vs_full(cfg: &EppoConfig) -> (f64, f64) {
     let vs = nn::VarStore::new(Device::Cpu);
-    let model = Transformer::new(vs.root(), &cfg.model).expect("valid model");
-    let (b, l) = (12, cfg.model.max_len);
-    let x = Tensor::randn([b, l, cfg.model.d_model], (Kind::Float, Device::Cpu));
+    let model = Transformer::new(vs.root(), &cfg.model.transformer).expect("valid model");
+    let (b, l) = (12, cfg.model.transformer.max_len);
+    let x = Tensor::randn(
+        [b, l, cfg.model.transformer.d_model],
+        (Kind::Float, Device::Cpu),
+    );
     let full = tch::no_grad(|| timed(3, || drop(model.forward_t(&x, false).expect("forward"))));
     // Prefill 1400 positions, then time the last 100 steps one at a time.
     let prefix = l - 100;
@@ -116,19 +119,19 @@ fn kv_cache_vs_full(cfg: &EppoConfig) -> (f64, f64) {
 
 fn collection(cfg: EppoConfig, rounds: usize) -> (f64, f64) {
     let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).expect("learner");
-    let envs = (0..cfg.n_envs)
+    let envs = (0..cfg.tasks.n_envs)
         .map(|_| {
             make_env(
                 EnvName::DarkRoom,
                 &EnvOptions {
-                    max_episode_steps: Some(cfg.max_episode_steps),
-                    physics_steps_per_action: cfg.physics_steps_per_action,
+                    max_episode_steps: Some(cfg.tasks.max_episode_steps),
+                    physics_steps_per_action: cfg.tasks.physics_steps_per_action,
                 },
             )
             .expect("env")
         })
         .collect();
-    let mut venv = VecEnv::new(envs, cfg.env_threads, true).expect("vec env");
+    let mut venv = VecEnv::new(envs, cfg.run.env_threads, true).expect("vec env");
     let t = Instant::now();
     let (mut trajs, mut steps) = (0, 0);
     for _ in 0..rounds {
@@ -229,8 +232,8 @@ fn update_part(cfg: &EppoConfig, threads: i32) {
     // The learner sets the preset's torch_threads: the bench's count rules.
     tch::set_num_threads(threads);
     let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(0);
-    for _ in 0..cfg.batch_size {
-        learner.replay.push(synthetic(cfg.k_max, &mut rng));
+    for _ in 0..cfg.optimisation.batch_size {
+        learner.replay.push(synthetic(cfg.tasks.k_max, &mut rng));
     }
     let reps = 5;
     learner.update().expect("warm-up update");
@@ -238,7 +241,11 @@ fn update_part(cfg: &EppoConfig, threads: i32) {
     let (rust, rust_cpu) = timed_cpu(reps, || {
         learner.update().expect("update");
     });
-    let (b, l, m) = (cfg.batch_size, cfg.model.max_len, &cfg.model);
+    let (b, l, m) = (
+        cfg.optimisation.batch_size,
+        cfg.model.transformer.max_len,
+        &cfg.model.transformer,
+    );
     println!(
         "| one EPPO update, batch {b} x {l}, {} layers (tch) | {rust:.3} s wall, {rust_cpu:.3} s CPU | |",
         m.n_layers
@@ -280,21 +287,21 @@ fn update_part(cfg: &EppoConfig, threads: i32) {
             "--d-ff",
             &m.d_ff.to_string(),
         ])
-        .args(["--hidden", &cfg.head_hidden.to_string()])
+        .args(["--hidden", &cfg.model.head_hidden.to_string()])
         .args([
             "--n-step",
-            &cfg.n_step.to_string(),
+            &cfg.targets.n_step.to_string(),
             "--gamma",
-            &arg(cfg.gamma),
+            &arg(cfg.targets.gamma),
         ])
         .args([
             "--tau",
-            &arg(cfg.tau),
+            &arg(cfg.targets.tau),
             "--entropy-coef",
-            &arg(cfg.entropy_coef),
+            &arg(cfg.exploration.entropy_coef),
         ])
-        .args(["--reward-scale", &arg(cfg.reward_scale)])
-        .args(["--critic-weight", &arg(cfg.critic_weight)])
+        .args(["--reward-scale", &arg(cfg.targets.reward_scale)])
+        .args(["--critic-weight", &arg(cfg.optimisation.critic_weight)])
         .args([
             "--reps",
             &reps.to_string(),
@@ -351,7 +358,7 @@ fn training_speed(env: EnvName, overlap: bool, updates: u64, extra: &[&str]) -> 
         .chain(extra.iter().copied())
         .collect();
     let cfg = env_config(env.as_str(), "quick", &sets);
-    tch::set_num_threads(cfg.torch_threads);
+    tch::set_num_threads(cfg.run.torch_threads);
     let report = train(&PretrainOptions {
         env,
         cfg,

@@ -208,44 +208,57 @@ mod tests {
                     .unwrap_or_else(|err| panic!("{name}: {err}"));
                 continue;
             }
-            let cfg: EppoConfig = resolve(name, table).unwrap();
+            let cfg = EppoConfig::from_table(name, table).unwrap();
             cfg.validate().unwrap_or_else(|err| panic!("{name}: {err}"));
             // The macro action, spelled out in every Point and Car preset:
             // 5 Safety-Gymnasium steps x 10 physics steps; none for DarkRoom.
             let want = (e != "darkroom").then_some(safety_envs::PHYSICS_STEPS_PER_ACTION);
-            assert_eq!(cfg.physics_steps_per_action, want, "{name}");
+            assert_eq!(cfg.tasks.physics_steps_per_action, want, "{name}");
         }
     }
 
     #[test]
     fn overrides_apply_and_typos_fail() {
         let mut t = preset_table("eppo", "darkroom", "quick").unwrap();
-        let sets = ["model.n_layers=1", "lr=1", "device=cuda", "seed=7"].map(String::from);
-        apply_overrides(&mut t, &sets).unwrap();
-        let cfg: EppoConfig = resolve("x", t.clone()).unwrap();
+        let sets = ["model.n_layers=1", "lr=1", "device=cuda", "run.seed=7"].map(String::from);
+        EppoConfig::apply_sets(&mut t, &sets).unwrap();
+        let cfg = EppoConfig::from_table("x", t.clone()).unwrap();
         assert_eq!(
-            (cfg.model.n_layers, cfg.lr, cfg.device.as_str(), cfg.seed),
+            (
+                cfg.model.transformer.n_layers,
+                cfg.optimisation.lr,
+                cfg.run.device.as_str(),
+                cfg.run.seed
+            ),
             (1, 1.0, "cuda", 7)
         );
         let err = apply_overrides(&mut t, &["modle.n_layers=1".into()])
             .unwrap_err()
             .to_string();
         assert!(err.contains("modle.n_layers"), "{err}");
-        // A field absent from the table is added; a misspelt one is refused
-        // when resolved, naming the valid fields.
+        let err = EppoConfig::apply_sets(&mut t, &["modle.n_layers=1".into()])
+            .unwrap_err()
+            .to_string();
+        assert!(err.contains("modle.n_layers"), "{err}");
+        // A setting absent from the table is added; a misspelt one is refused
+        // when resolved, naming the valid ones.
         let mut point = preset_table("eppo", "point", "quick").unwrap();
-        apply_overrides(&mut point, &["task_pool=1".into()]).unwrap();
+        EppoConfig::apply_sets(&mut point, &["task_pool=1".into()]).unwrap();
         assert_eq!(
-            resolve::<EppoConfig>("x", point.clone()).unwrap().task_pool,
+            EppoConfig::from_table("x", point.clone())
+                .unwrap()
+                .tasks
+                .task_pool,
             1
         );
-        apply_overrides(&mut point, &["task_pol=1".into()]).unwrap();
-        let err = resolve::<EppoConfig>("x", point).unwrap_err().to_string();
+        EppoConfig::apply_sets(&mut point, &["task_pol=1".into()]).unwrap();
+        let err = EppoConfig::from_table("x", point).unwrap_err().to_string();
         assert!(
             err.contains("task_pol") && err.contains("task_pool"),
             "{err}"
         );
         assert!(apply_overrides(&mut t, &["lr".into()]).is_err());
+        assert!(EppoConfig::apply_sets(&mut t, &["lr".into()]).is_err());
         assert!(
             preset_table("eppo", "darkroom", "huge")
                 .unwrap_err()

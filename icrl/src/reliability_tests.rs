@@ -52,11 +52,12 @@ fn poison(file: &Path) -> String {
 }
 
 fn tiny_eppo(total_updates: u64) -> eppo::EppoConfig {
-    eppo::EppoConfig {
-        total_updates,
-        checkpoint_every: 1,
-        keep_checkpoints: 0,
-        ..eppo::tests::tiny()
+    {
+        let mut c = eppo::tests::tiny();
+        c.optimisation.total_updates = total_updates;
+        c.run.checkpoint_every = 1;
+        c.run.keep_checkpoints = 0;
+        c
     }
 }
 
@@ -346,10 +347,8 @@ fn ad_non_finite_loss_stops_naming_the_last_good_checkpoint() {
 #[test]
 fn a_stop_request_checkpoints_and_the_run_resumes() {
     let root = tmp("stop");
-    let cfg = eppo::EppoConfig {
-        checkpoint_every: 100,
-        ..tiny_eppo(4)
-    };
+    let mut cfg = tiny_eppo(4);
+    cfg.run.checkpoint_every = 100;
     let (done, updates) = eppo::tests::stop_after_one_then_resume(&cfg, &root);
     assert_eq!(done, 4);
     assert_eq!(
@@ -390,7 +389,7 @@ fn every_shipped_preset_fits_the_memory_estimate() {
             eppo::NetSpec::from_spaces(&probe.observation_space(), &probe.action_space()).unwrap();
         for preset in ["quick", "table1"] {
             let table = crate::presets::preset_table("eppo", env.as_str(), preset).unwrap();
-            let cfg: eppo::EppoConfig = crate::presets::resolve("preset", table).unwrap();
+            let cfg = eppo::EppoConfig::from_table("preset", table).unwrap();
             let m = eppo::memory_estimate(&cfg, &spec);
             assert!(m.total() < 16e9, "eppo {env} {preset}: {m:?}");
         }

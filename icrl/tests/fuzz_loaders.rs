@@ -484,8 +484,8 @@ fn checkpoints(root: &Path) -> (PathBuf, PathBuf, icrl::eppo::EppoConfig) {
     .map(String::from)
     .to_vec();
     let mut table = icrl::presets::preset_table("eppo", "darkroom", "quick").unwrap();
-    icrl::presets::apply_overrides(&mut table, &sets).unwrap();
-    let cfg: icrl::eppo::EppoConfig = icrl::presets::resolve("fuzz", table).unwrap();
+    icrl::eppo::EppoConfig::apply_sets(&mut table, &sets).unwrap();
+    let cfg = icrl::eppo::EppoConfig::from_table("fuzz", table).unwrap();
     let eppo_cfg = cfg.clone();
     let eppo = icrl::eppo::train(&icrl::eppo::PretrainOptions {
         env: EnvName::DarkRoom,

@@ -58,8 +58,18 @@ pub fn eppo(
             crate::presets::preset_table("eppo", env, preset).map_err(cfg_err)?,
         ),
     };
-    let saved = resume.is_some().then(|| table.clone());
-    crate::presets::apply_overrides(&mut table, sets).map_err(cfg_err)?;
+    // A run's config.toml written before the settings had sections is
+    // compared with the `--set`s in sections, as they apply.
+    let saved = match resume {
+        Some(_) => {
+            let mut saved = table.clone();
+            EppoConfig::migrate(&mut saved)
+                .map_err(|e| EppoError::Config(format!("{name}: {e}")))?;
+            Some(saved)
+        }
+        None => None,
+    };
+    EppoConfig::apply_sets(&mut table, sets)?;
     if let (Some(saved), Some(path)) = (&saved, resume) {
         check_eppo_resume(path, saved, &table)?;
     }
@@ -139,14 +149,14 @@ pub fn run_in_out(
         .map_err(|e| invalid(e.to_string()))?
         .parse::<toml::Table>()
         .map_err(|e| invalid(e.to_string()))?;
-    crate::presets::apply_overrides(&mut table, sets).map_err(|e| invalid(e.to_string()))?;
     let key = if method == "ad" {
+        crate::presets::apply_overrides(&mut table, sets).map_err(|e| invalid(e.to_string()))?;
         "updates"
     } else {
+        EppoConfig::apply_sets(&mut table, sets).map_err(|e| invalid(e.to_string()))?;
         "total_updates"
     };
-    let total = table
-        .get(key)
+    let total = EppoConfig::setting(&table, key)
         .and_then(toml::Value::as_integer)
         .ok_or_else(|| invalid(format!("no integer {key}")))?;
     Ok(if updates as i64 >= total {
@@ -205,7 +215,7 @@ fn check_eppo_resume(path: &Path, saved: &toml::Table, now: &toml::Table) -> Res
         .ok()
         .and_then(|t| serde_json::from_str::<serde_json::Value>(&t).ok())
         .and_then(|v| v["updates"].as_u64());
-    let total = now.get("total_updates").and_then(toml::Value::as_integer);
+    let total = EppoConfig::setting(now, "total_updates").and_then(toml::Value::as_integer);
     if let (Some(done), Some(total)) = (done, total)
         && total <= done as i64
     {
@@ -263,14 +273,24 @@ pub fn fork(
         problem,
         fix: "restore the run's config.toml from a copy".into(),
     };
-    let saved = fs::read_to_string(&path)
+    let mut saved = fs::read_to_string(&path)
         .map_err(|e| invalid(e.to_string()))?
         .parse::<toml::Table>()
         .map_err(|e| invalid(e.to_string()))?;
+    if method != "ad" {
+        // The fork's config.toml is written in sections, whatever the form
+        // of the run it branches from.
+        EppoConfig::migrate(&mut saved).map_err(invalid)?;
+    }
     let mut table = saved.clone();
-    crate::presets::apply_overrides(&mut table, sets).map_err(|e| CheckpointError::Invalid {
+    let applied = if method == "ad" {
+        crate::presets::apply_overrides(&mut table, sets).map_err(|e| e.to_string())
+    } else {
+        EppoConfig::apply_sets(&mut table, sets).map_err(|e| e.to_string())
+    };
+    applied.map_err(|problem| CheckpointError::Invalid {
         path: path.clone(),
-        problem: e.to_string(),
+        problem,
         fix: "correct the --set".into(),
     })?;
     let changes = setting_changes(&saved, &table);
@@ -305,8 +325,7 @@ pub fn fork(
             fix: "keep the model's settings, or start a new run".into(),
         });
     }
-    let seed = table
-        .get("seed")
+    let seed = EppoConfig::setting(&table, "seed")
         .and_then(toml::Value::as_integer)
         .and_then(|s| u64::try_from(s).ok())
         .ok_or_else(|| invalid("no seed (a whole number of 0 or more)".into()))?;
@@ -331,13 +350,18 @@ pub fn fork(
 }
 
 /// `(key, "key: before -> after")` for every setting of `now` that differs
-/// from `saved` (dotted keys for nested tables).
+/// from `saved`, both in the same form: dotted keys for nested tables, but an
+/// EPPO setting by its own name (`lambda_max`, not `constraint.lambda_max`:
+/// [`EppoConfig::flat_name`]).
 fn setting_changes(saved: &toml::Table, now: &toml::Table) -> Vec<(String, String)> {
     let mut old = Vec::new();
     let mut new = Vec::new();
     flatten("", saved, &mut old);
     flatten("", now, &mut new);
+    let named = |(key, value): (String, String)| (EppoConfig::flat_name(&key).to_string(), value);
+    let old: Vec<(String, String)> = old.into_iter().map(named).collect();
     new.into_iter()
+        .map(named)
         .filter_map(|(key, after)| {
             let before = old.iter().find(|(k, _)| *k == key).map(|(_, v)| v.as_str());
             (before != Some(after.as_str())).then(|| {
@@ -480,4 +504,56 @@ pub fn ad(
     let summary = result?;
     bar.finish();
     Ok(summary)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A run whose config.toml is flat (every run written before the
+    /// settings had sections) is compared with the `--set`s in sections:
+    /// unchanged, only its length is asked for; changed, each change is
+    /// named by its setting, as before.
+    #[test]
+    fn a_flat_run_resumes_against_sets_in_sections() {
+        let from = Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../results/eppo_darkroom_budget/dp0_preset_budget_seed0");
+        let out = std::env::temp_dir().join(format!("icrl-flat-resume-{}", std::process::id()));
+        let run = out.join("dp0");
+        let step = run.join("checkpoints/step_5291");
+        fs::create_dir_all(&step).unwrap();
+        for file in ["config.toml", "metrics.jsonl"] {
+            fs::copy(from.join(file), run.join(file)).unwrap();
+        }
+        for entry in fs::read_dir(from.join("checkpoints/step_5291")).unwrap() {
+            let entry = entry.unwrap();
+            fs::copy(entry.path(), step.join(entry.file_name())).unwrap();
+        }
+        let flat: toml::Table = fs::read_to_string(run.join("config.toml"))
+            .unwrap()
+            .parse()
+            .unwrap();
+        assert!(flat.contains_key("lambda_max"), "written flat");
+        let resume = |sets: &[&str]| {
+            let sets: Vec<String> = sets.iter().map(|s| s.to_string()).collect();
+            eppo("darkroom", "quick", Some(&run), &sets, &out)
+                .err()
+                .unwrap()
+                .to_string()
+        };
+        let err = resume(&["total_updates=5291", "torch_threads=1"]);
+        assert!(
+            err.contains("it has done 5291 updates and total_updates is 5291"),
+            "{err}"
+        );
+        let err = resume(&["lr=0.1", "constraint.lambda_max=0.5"]);
+        assert!(
+            err.contains("these settings differ from its config.toml: ")
+                && err.contains("lr: 0.0003 -> 0.1")
+                && err.contains("lambda_max: 0.3 -> 0.5")
+                && !err.contains("(unset)"),
+            "{err}"
+        );
+        fs::remove_dir_all(&out).unwrap();
+    }
 }

@@ -38,6 +38,7 @@ use serde::Deserialize;
 use thiserror::Error;
 
 use crate::cli::pretrain::{InOut, run_in_out};
+use crate::eppo::EppoConfig;
 use crate::run_summary::shell_word;
 
 /// What can go wrong with a sweep.
@@ -275,14 +276,17 @@ impl SweepGrid {
     fn resolved(&self, task: &Task) -> Result<toml::Table, String> {
         let mut table = crate::presets::preset_table(&self.method, &self.env, &self.preset)
             .map_err(|e| e.to_string())?;
-        crate::presets::apply_overrides(&mut table, &self.sets(task)).map_err(|e| e.to_string())?;
         let checked = match self.method.as_str() {
-            "ad" => crate::ad::AdConfig::from_table(table.clone())
-                .map(|_| ())
-                .map_err(|e| e.to_string()),
-            _ => crate::eppo::EppoConfig::from_table("sweep", table.clone())
+            "ad" => crate::presets::apply_overrides(&mut table, &self.sets(task))
                 .map_err(|e| e.to_string())
-                .and_then(|c| c.validate().map_err(|e| e.to_string())),
+                .and_then(|()| {
+                    crate::ad::AdConfig::from_table(table.clone()).map_err(|e| e.to_string())
+                })
+                .map(|_| ()),
+            _ => EppoConfig::apply_sets(&mut table, &self.sets(task))
+                .and_then(|()| EppoConfig::from_table("sweep", table.clone()))
+                .and_then(|c| c.validate())
+                .map_err(|e| e.to_string()),
         };
         checked.map_err(|e| format!("task {} ({}): {e}", task.index, task.label()))?;
         Ok(table)
@@ -510,7 +514,12 @@ struct Resources {
 fn resources(grid: &SweepGrid) -> Result<Resources, String> {
     let s = &grid.slurm;
     let tables: Vec<toml::Table> = grid.tasks_checked()?.into_iter().map(|(_, t)| t).collect();
-    let int = |t: &toml::Table, k: &str| t.get(k).and_then(toml::Value::as_integer).unwrap_or(0);
+    // An EPPO table is in sections, an AD one flat: `setting` reads both.
+    let int = |t: &toml::Table, k: &str| {
+        EppoConfig::setting(t, k)
+            .and_then(toml::Value::as_integer)
+            .unwrap_or(0)
+    };
     let updates_key = if grid.method == "ad" {
         "updates"
     } else {
@@ -532,7 +541,7 @@ fn resources(grid: &SweepGrid) -> Result<Resources, String> {
         .unwrap_or(1);
     let cuda = tables
         .iter()
-        .any(|t| t.get("device").and_then(toml::Value::as_str) == Some("cuda"));
+        .any(|t| EppoConfig::setting(t, "device").and_then(toml::Value::as_str) == Some("cuda"));
     let mem_gib = match grid.method.as_str() {
         "ad" => ad_memory_gib(grid, &tables)?,
         _ => eppo_memory_gib(grid, &tables)?,
@@ -586,8 +595,7 @@ fn eppo_memory_gib(grid: &SweepGrid, tables: &[toml::Table]) -> Result<u64, Stri
     let spec = net_spec(grid)?;
     let mut most: f64 = 0.0;
     for t in tables {
-        let cfg =
-            crate::eppo::EppoConfig::from_table("sweep", t.clone()).map_err(|e| e.to_string())?;
+        let cfg = EppoConfig::from_table("sweep", t.clone()).map_err(|e| e.to_string())?;
         most = most.max(crate::eppo::memory_estimate(&cfg, &spec).total());
     }
     Ok(doubled_gib(most))

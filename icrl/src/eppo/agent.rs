@@ -59,7 +59,7 @@ impl EppoAgent {
             .map_err(|e| bad("config.toml", e.to_string()))?;
         let mut cfg = EppoConfig::from_table("config.toml", table)
             .map_err(|e| bad("config.toml", e.to_string()))?;
-        cfg.device = if device == Device::Cpu {
+        cfg.run.device = if device == Device::Cpu {
             "cpu".into()
         } else {
             "cuda".into()
@@ -68,8 +68,8 @@ impl EppoAgent {
             .map_err(|e| bad("state.json", e.to_string()))?;
         let state: TrainState =
             serde_json::from_str(&text).map_err(|e| bad("state.json", e.to_string()))?;
-        if !cfg.slots_ever_hidden() {
-            let (shown, share) = if cfg.goal_in_observation {
+        if !cfg.goal.slots_ever_hidden() {
+            let (shown, share) = if cfg.goal.goal_in_observation {
                 ("goal_in_observation", "goal_hidden_share")
             } else {
                 ("hazards_in_observation", "hazard_hidden_share")
@@ -127,9 +127,9 @@ impl EppoAgent {
         Ok(EppoAgent {
             _vs: vs,
             net,
-            shown_slots: cfg.shown_slots(env),
+            shown_slots: cfg.goal.shown_slots(env),
             spec: state.spec,
-            rng: ChaCha8Rng::seed_from_u64(cfg.seed),
+            rng: ChaCha8Rng::seed_from_u64(cfg.run.seed),
             cfg,
             acting: None,
         })

@@ -40,8 +40,8 @@ impl Learner {
             rng_word_pos: self.rng.get_word_pos().to_string(),
             spec: self.spec.clone(),
             pretrain_tasks: Some(PretrainTasks::centre(
-                self.cfg.seed,
-                match self.cfg.task_pool {
+                self.cfg.run.seed,
+                match self.cfg.tasks.task_pool {
                     0 => self.tasks_drawn,
                     pool => self.tasks_drawn.min(pool),
                 },
@@ -54,9 +54,9 @@ impl Learner {
             "eppo",
             self.env.as_str(),
             self.env
-                .physics_steps_per_action(self.cfg.physics_steps_per_action),
+                .physics_steps_per_action(self.cfg.tasks.physics_steps_per_action),
             self.model_manifest(),
-            self.cfg.retention(),
+            self.cfg.run.retention(),
             |dir| {
                 let wrap = |path: PathBuf, e: String| CheckpointError::Invalid {
                     path,
@@ -100,7 +100,7 @@ impl Learner {
             dir,
             "eppo",
             env.as_str(),
-            env.physics_steps_per_action(learner.cfg.physics_steps_per_action),
+            env.physics_steps_per_action(learner.cfg.tasks.physics_steps_per_action),
             &learner.model_manifest(),
         )?;
         let bad = |file: &str, e: String| {
@@ -150,8 +150,8 @@ impl Learner {
             .unwrap_or_else(|| Multiplier::new(state.lambda));
         // A fork onto per-episode multipliers, or to another K: the new ones
         // start at the checkpoint's lambda; a fork off them keeps lambda alone.
-        let k = if learner.cfg.per_episode_multipliers {
-            learner.cfg.k_max
+        let k = if learner.cfg.constraint.per_episode_multipliers {
+            learner.cfg.tasks.k_max
         } else {
             0
         };
@@ -159,8 +159,10 @@ impl Learner {
         learner.multiplier.per_episode.resize(k, lambda);
         // A tuned weight goes on from where it was; a fixed one is the
         // config's, so that a fork can change it.
-        if learner.cfg.target_entropy.is_some() {
-            learner.entropy_coef = state.entropy_coef.unwrap_or(learner.cfg.entropy_coef);
+        if learner.cfg.exploration.target_entropy.is_some() {
+            learner.entropy_coef = state
+                .entropy_coef
+                .unwrap_or(learner.cfg.exploration.entropy_coef);
         }
         // Older checkpoints have no measured start: a fork that asks for one
         // measures it afresh.
@@ -192,7 +194,7 @@ impl Learner {
         learner.rng = rng;
         let replay = dir.join(REPLAY_FILE);
         if replay.exists() {
-            learner.replay = Replay::load(&replay, learner.cfg.replay_capacity)
+            learner.replay = Replay::load(&replay, learner.cfg.targets.replay_capacity)
                 .map_err(|e| bad(REPLAY_FILE, e))?;
         } else {
             eprintln!(
@@ -271,19 +273,19 @@ pub(super) fn model_manifest(cfg: &EppoConfig, spec: &NetSpec) -> serde_json::Va
         // The token layout: checkpoints from before the arrived observation
         // was added read a narrower token and are refused by name.
         "token": "obs,arrived_obs,prev_action,reward,cost,ctg,start",
-        "transformer": cfg.model,
-        "encoder_hidden": cfg.encoder_hidden,
-        "head_hidden": cfg.head_hidden,
-        "n_critics": cfg.n_critics,
+        "transformer": cfg.model.transformer,
+        "encoder_hidden": cfg.model.encoder_hidden,
+        "head_hidden": cfg.model.head_hidden,
+        "n_critics": cfg.model.n_critics,
         "obs_dim": spec.obs_dim,
         "n_actions": spec.n_actions,
         "act_dim": spec.act_flat(),
     });
     // Only runs with these heads record them, so older checkpoints stay loadable.
-    if cfg.goal_recall_coef > 0.0 {
+    if cfg.goal.goal_recall_coef > 0.0 {
         manifest["goal_recall_head"] = true.into();
     }
-    if cfg.novelty_critic {
+    if cfg.novelty.novelty_critic {
         manifest["novelty_critic"] = true.into();
     }
     manifest

@@ -331,7 +331,7 @@ pub(super) struct Collector<'a> {
 }
 
 impl Collector<'_> {
-    /// Collects `cfg.n_envs` trajectories at once: each in a fresh centre-oriented
+    /// Collects `cfg.tasks.n_envs` trajectories at once: each in a fresh centre-oriented
     /// task with its own budget and K, acted in one batch through the KV cache.
     pub(super) fn round(
         &mut self,
@@ -339,8 +339,11 @@ impl Collector<'_> {
     ) -> Result<(Vec<Trajectory>, RoundStats), EppoError> {
         let n = venv.len();
         let (budgets, ks, eps_scale) = self.draw_tasks(venv)?;
-        let exploration = self.cfg.exploration(*self.env_steps);
-        let horizons: Vec<usize> = ks.iter().map(|k| k * self.cfg.max_episode_steps).collect();
+        let exploration = self.cfg.exploration.schedule(*self.env_steps);
+        let horizons: Vec<usize> = ks
+            .iter()
+            .map(|k| k * self.cfg.tasks.max_episode_steps)
+            .collect();
         let mut acting = Acting::new(self.net, self.spec, self.cfg, &budgets);
         let mut trajs: Vec<Trajectory> = budgets
             .iter()
@@ -352,13 +355,13 @@ impl Collector<'_> {
             })
             .collect();
         // Drawn only while some goal is hidden, so other runs keep their stream.
-        let hide_share = self.cfg.hidden_share_at(*self.env_steps);
+        let hide_share = self.cfg.goal.hidden_share_at(*self.env_steps);
         let hidden: Vec<bool> = (0..n)
             .map(|_| hide_share > 0.0 && self.rng.r#gen::<f64>() < hide_share)
             .collect();
         let mut active = vec![true; n];
         let (od, a) = (self.spec.obs_dim, self.spec.act_flat());
-        let slots = self.cfg.shown_slots(self.env);
+        let slots = self.cfg.goal.shown_slots(self.env);
         let mut obs = venv.observations().to_vec();
         hide_slots(&mut obs, od, slots, &hidden);
         let mut arrived = vec![0f32; n * od];
@@ -392,7 +395,7 @@ impl Collector<'_> {
                     Ok(sample_actions(&policy, spec, &eps, false, rng))
                 },
             )?;
-            if self.cfg.scripted_first_episode {
+            if self.cfg.goal.scripted_first_episode {
                 let first_episode: Vec<bool> = (0..n)
                     .map(|i| active[i] && trajs[i].episode_returns.is_empty())
                     .collect();
@@ -473,11 +476,11 @@ impl Collector<'_> {
         }
         *self.env_steps += steps;
         let radii = (
-            self.cfg.novelty_cell,
+            self.cfg.novelty.novelty_cell,
             crate::signals::repeat_radius(self.env),
         );
         let mut stats = round_stats(&trajs, steps, self.spec, radii);
-        if self.cfg.goal_in_observation {
+        if self.cfg.goal.goal_in_observation {
             stats.goal_slots = GoalSlotStats::of(&trajs, &hidden);
         }
         Ok((trajs, stats))
@@ -492,18 +495,22 @@ impl Collector<'_> {
         let (mut budgets, mut ks, mut seeds) = (vec![0f32; n], vec![0usize; n], vec![0u64; n]);
         let mut eps_scale = vec![1f64; n];
         for i in 0..n {
-            let index = match self.cfg.task_pool {
+            let index = match self.cfg.tasks.task_pool {
                 0 => *self.tasks_drawn,
                 pool => *self.tasks_drawn % pool,
             };
-            let seed = pretrain_task_seed(self.cfg.seed, index);
+            let seed = pretrain_task_seed(self.cfg.run.seed, index);
             *self.tasks_drawn += 1;
             let task = sample_task(&spawn, Orientation::Centre, seed)?;
             venv.set_task(i, &task)?;
-            budgets[i] = self.rng.gen_range(self.cfg.ctg_min..=self.cfg.ctg_max);
-            ks[i] = self.rng.gen_range(self.cfg.k_min..=self.cfg.k_max);
+            budgets[i] = self
+                .rng
+                .gen_range(self.cfg.tasks.ctg_min..=self.cfg.tasks.ctg_max);
+            ks[i] = self
+                .rng
+                .gen_range(self.cfg.tasks.k_min..=self.cfg.tasks.k_max);
             seeds[i] = self.rng.r#gen();
-            if self.cfg.eps_random_scale {
+            if self.cfg.exploration.eps_random_scale {
                 eps_scale[i] = self.rng.r#gen();
             }
         }

@@ -1,5 +1,8 @@
-//! EPPO's hyperparameters ([`EppoConfig`], one documented field each) and
-//! what can fail ([`EppoError`]); the checks run before anything is built
+//! EPPO's hyperparameters ([`EppoConfig`]: nine sections of documented
+//! fields, `[run]`, `[tasks]`, `[model]`, `[optimisation]`, `[targets]`,
+//! `[constraint]`, `[exploration]`, `[novelty]` and `[goal]`), the flat form
+//! of older configs moved into them ([`EppoConfig::SECTIONS`]), and what can
+//! fail ([`EppoError`]); the checks run before anything is built
 //! (validation, the device, the memory estimate) and the bilevel exploration
 //! schedule ([`Exploration`]).
 
@@ -14,10 +17,46 @@ use safety_envs::{EnvError, EnvName, GoalShown, HazardsShown, spawn_config};
 use crate::checkpoint::{CheckpointError, Retention};
 use crate::model::{self, ModelError};
 
-/// Every EPPO hyperparameter (presets in `icrl/presets/eppo-*.toml`).
+/// Every EPPO hyperparameter (presets in `icrl/presets/eppo-*.toml`), by
+/// concern. A setting's name is unique across the sections, so that
+/// `--set lambda_max=1` finds `[constraint]` as `--set
+/// constraint.lambda_max=1` does, and a flat config written before the
+/// sections loads ([`EppoConfig::from_table`]).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct EppoConfig {
+    /// The machine and the run's bookkeeping: seed, device, threads, the
+    /// loop's shape, checkpoints.
+    pub run: RunConfig,
+    /// The trajectories collected: tasks, episodes, budgets.
+    pub tasks: TasksConfig,
+    /// The network's shape: the transformer, the MLPs around it, the critics.
+    pub model: ModelConfig,
+    /// Adam and the update schedule: how many updates, how often, on what batches.
+    pub optimisation: OptimisationConfig,
+    /// The critics' TD targets and the replay they are computed from.
+    pub targets: TargetsConfig,
+    /// The cost budget: the multiplier of Eq. (7), or the price the critics
+    /// charge instead, and when it starts.
+    pub constraint: ConstraintConfig,
+    /// Behaviour noise (bilevel epsilon) and the actor's entropy bonus.
+    pub exploration: ExplorationConfig,
+    /// The search bonus for cells new to a trajectory (pretraining only).
+    #[serde(default)]
+    pub novelty: NoveltyConfig,
+    /// What pretraining tells the critics or shows the agent of the goal (and
+    /// the hazards) beyond the paper: hindsight relabelling, a dense reward,
+    /// a recall head, the goal or hazard map in the observation, a scripted
+    /// first episode.
+    #[serde(default)]
+    pub goal: GoalConfig,
+}
+
+/// `[run]`: the machine and the run's bookkeeping; none of it changes what
+/// is learned but the seed.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct RunConfig {
     /// Seed of every random choice (tasks, budgets, actions, libtorch).
     pub seed: u64,
     /// `cpu` or `cuda` (CUDA device 0).
@@ -27,11 +66,48 @@ pub struct EppoConfig {
     /// barriers between oversubscribed threads dominate each tiny operation.
     #[serde(default)]
     pub torch_threads: i32,
-    /// Environment time limit t_max in agent steps.
+    /// Threads stepping the environments.
+    pub env_threads: usize,
+    // The loop's shape (issue 20): both together, so merges stay simple.
+    /// Collect and learn at once on two threads (`overlap.rs`): an actor
+    /// steps the environments with a copy of the policy, refreshed after
+    /// every round's updates, one round behind the synchronous loop's; the
+    /// learner updates meanwhile. The replay ratio holds whatever either
+    /// side's speed, and a run stays deterministic under its seed. Wants
+    /// `torch_threads = 1` on two cores. false: collect, then update.
+    #[serde(default)]
+    pub overlap: bool,
+    /// Overlapped loop: libtorch threads of the learner's update (0:
+    /// `torch_threads`); the actor keeps `torch_threads`. From 2 on, the
+    /// target network's forward runs on a thread of its own beside the
+    /// online forward, then the backward on all of them. Where the actor
+    /// mostly waits (SafeDarkRoom; Car at 32 updates a round) 2 lends its
+    /// core to the update: 1.45x SafeDarkRoom's updates/s, 1.30x Car's
+    /// (BENCHMARKS.md).
+    #[serde(default)]
+    pub learner_threads: i32,
+    /// Updates between checkpoints (one is always written at the end).
+    pub checkpoint_every: u64,
+    /// Checkpoints kept (0 keeps all).
+    pub keep_checkpoints: usize,
+    /// Besides the newest `keep_checkpoints`, keep every checkpoint written
+    /// at a multiple of this many updates (0: none), to evaluate the run's
+    /// history or fork from a good stretch that later training lost.
+    #[serde(default)]
+    pub keep_every: u64,
+}
+
+/// `[tasks]`: the trajectories collected, each K episodes of one task
+/// under one sampled budget.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TasksConfig {
+    /// Environment time limit t_max in agent steps (Table 1 "Episode time
+    /// limit t_max").
     pub max_episode_steps: usize,
-    /// Fewest episodes per trajectory (K_min).
+    /// Fewest episodes per trajectory (Table 1 K_min).
     pub k_min: usize,
-    /// Most episodes per trajectory (K_max).
+    /// Most episodes per trajectory (Table 1 K_max).
     pub k_max: usize,
     /// Smallest sampled per-episode cost budget (CTG_min).
     pub ctg_min: f32,
@@ -39,18 +115,122 @@ pub struct EppoConfig {
     pub ctg_max: f32,
     /// Trajectories collected at once (one environment each, acted in one batch).
     pub n_envs: usize,
-    /// Threads stepping the environments.
-    pub env_threads: usize,
-    /// Replay capacity in environment steps (whole trajectories are evicted, oldest first).
-    pub replay_capacity: usize,
+    /// Point and Car: MuJoCo physics steps per agent action (the macro
+    /// action; 5 Safety-Gymnasium steps x 10 physics steps = 50 when absent).
+    /// SafeDarkRoom has no physics: leave it out. Checkpoints record the
+    /// resolved value; resuming with another is refused.
+    #[serde(default = "default_physics_steps_per_action")]
+    pub physics_steps_per_action: Option<usize>,
+    /// Pretraining task pool: 0 draws a fresh task for every trajectory (the
+    /// paper); n > 0 cycles over the first n task seeds (1: one fixed task,
+    /// the first rung of the debugging ladder).
+    #[serde(default)]
+    pub task_pool: u64,
+}
+
+/// `[model]`: the network's shape. The transformer's own settings
+/// ([`model::Config`], Table 1's "Embedding Dim", "Num Layers", "Num
+/// Heads", "Seq Len" and dropouts) sit in the same table as the MLPs
+/// around it; a checkpoint's weights fit only this shape.
+#[derive(Clone, Debug, PartialEq)]
+pub struct ModelConfig {
     /// The shared transformer; `max_len` is the sequence length.
-    pub model: model::Config,
+    pub transformer: model::Config,
     /// Hidden width of the time-step encoder MLP.
     pub encoder_hidden: i64,
     /// Hidden width of the actor and critic heads.
     pub head_hidden: i64,
     /// Critics per ensemble (reward target: minimum over them; cost target: mean).
     pub n_critics: i64,
+}
+
+impl Serialize for ModelConfig {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        #[derive(Serialize)]
+        struct Table<'a> {
+            #[serde(flatten)]
+            transformer: &'a model::Config,
+            encoder_hidden: i64,
+            head_hidden: i64,
+            n_critics: i64,
+        }
+        Table {
+            transformer: &self.transformer,
+            encoder_hidden: self.encoder_hidden,
+            head_hidden: self.head_hidden,
+            n_critics: self.n_critics,
+        }
+        .serialize(s)
+    }
+}
+
+impl<'de> Deserialize<'de> for ModelConfig {
+    /// `[model]`'s own settings taken out, the rest is the transformer's
+    /// (which refuses a key it does not know).
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        use serde::de::Error;
+        let mut table = toml::Table::deserialize(d)?;
+        let mut take = |key: &'static str| -> Result<i64, D::Error> {
+            let value = table
+                .remove(key)
+                .ok_or_else(|| D::Error::missing_field(key))?;
+            value
+                .try_into::<i64>()
+                .map_err(|e| D::Error::custom(format!("model.{key}: {e}")))
+        };
+        let (encoder_hidden, head_hidden, n_critics) = (
+            take("encoder_hidden")?,
+            take("head_hidden")?,
+            take("n_critics")?,
+        );
+        let transformer = model::Config::deserialize(toml::Value::Table(table))
+            .map_err(|e| D::Error::custom(format!("model: {e}")))?;
+        Ok(ModelConfig {
+            transformer,
+            encoder_hidden,
+            head_hidden,
+            n_critics,
+        })
+    }
+}
+
+/// `[optimisation]`: Adam and the update schedule.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct OptimisationConfig {
+    /// Adam learning rate (Table 1 "Learning Rate").
+    pub lr: f64,
+    /// Adam beta1 (Table 1 "Betas").
+    pub beta1: f64,
+    /// Adam beta2 (Table 1 "Betas").
+    pub beta2: f64,
+    /// Adam epsilon.
+    pub adam_eps: f64,
+    /// Global gradient-norm clip (Table 1 "Clip Grad").
+    pub grad_clip: f64,
+    /// Weight of the critic losses against the actor loss.
+    pub critic_weight: f64,
+    /// Trajectories per update batch (N; Table 1 "Batch Size").
+    pub batch_size: usize,
+    /// Updates to run in total (Table 1 "Num Updates").
+    pub total_updates: u64,
+    /// Updates after each collection round.
+    pub updates_per_round: u64,
+    /// Environment steps collected before the first update.
+    pub learning_starts: u64,
+    /// The replay ratio as updates per environment step: after each round
+    /// the learner catches up to floor(replay_ratio x (env_steps -
+    /// learning_starts)) updates in total. Absent: `updates_per_round`
+    /// updates after each round (updates per collected trajectory =
+    /// updates_per_round / n_envs), as in the paper's loop.
+    #[serde(default)]
+    pub replay_ratio: Option<f64>,
+}
+
+/// `[targets]`: the critics' TD targets, and the replay they are computed from.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct TargetsConfig {
     /// Discount factor gamma.
     pub gamma: f64,
     /// Value targets bootstrap across episode boundaries inside a trajectory
@@ -65,24 +245,22 @@ pub struct EppoConfig {
     /// n steps move it n times faster. 1: the paper's one-step target.
     #[serde(default = "default_n_step")]
     pub n_step: usize,
-    /// Adam learning rate.
-    pub lr: f64,
-    /// Adam beta1.
-    pub beta1: f64,
-    /// Adam beta2.
-    pub beta2: f64,
-    /// Adam epsilon.
-    pub adam_eps: f64,
-    /// Global gradient-norm clip.
-    pub grad_clip: f64,
-    /// Trajectories per update batch (N).
-    pub batch_size: usize,
-    /// Updates to run in total.
-    pub total_updates: u64,
-    /// Updates after each collection round.
-    pub updates_per_round: u64,
-    /// Environment steps collected before the first update.
-    pub learning_starts: u64,
+    /// Rewards are multiplied by this in the TD targets and the tokens.
+    pub reward_scale: f64,
+    /// Replay capacity in environment steps (whole trajectories are evicted,
+    /// oldest first; Table 1 "Replay buffer capacity").
+    pub replay_capacity: usize,
+}
+
+/// `[constraint]`: how the cost budget acts, through the multiplier lambda
+/// of Eq. (7) or a price in the critics' targets, and when it starts.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ConstraintConfig {
+    /// How the budget acts: through the actor's penalty lambda x Qc (on
+    /// which steps), or in the critics' targets (issue 18, issue 19).
+    #[serde(default)]
+    pub penalty: PenaltyForm,
     /// Multiplier step size eta of Eq. (7).
     pub lambda_lr: f64,
     /// Cap lambda_max of the multiplier (Appendix C).
@@ -111,25 +289,35 @@ pub struct EppoConfig {
     /// Rounds in `constraint_after_revisit`'s average.
     #[serde(default = "default_constraint_revisit_rounds")]
     pub constraint_revisit_rounds: usize,
-    /// Weight of the critic losses against the actor loss.
-    pub critic_weight: f64,
-    /// Entropy bonus weight in the actor loss (the starting weight with
-    /// `target_entropy`).
-    pub entropy_coef: f64,
-    /// SAC's automatic temperature: after every update the entropy weight
-    /// moves in log space by `entropy_coef_lr` x (target - the batch's policy
-    /// entropy), so the entropy tracks this target (nats, tanh-corrected for
-    /// continuous actions; SAC uses -|A|). A fixed weight lets a continuous
-    /// actor's mean run into tanh's saturation, where its gradient vanishes
-    /// and the policy collapses onto the action bounds (results/
-    /// eppo_point_ladder, rung rg2). Absent: `entropy_coef` stays fixed.
+    /// `penalty = "saute"` or `"excess"`: what each unit of cost paid after
+    /// the budget is spent takes off that step's reward (under Saute, on top
+    /// of its unsafe reward). 0 is Saute's constant, which leaves nothing
+    /// to choose between actions once an episode is over budget, so small
+    /// budgets came out the most costly (results/eppo_darkroom_budget, sa1).
+    #[serde(default, alias = "saute_cost_price")]
+    pub over_budget_cost_price: f64,
+    /// Later prices: each `{ after = N, price = P }` charges P per unit of
+    /// excess cost from N updates past the constraint's start on (N rising).
+    /// A price high enough to make the budget bind at the start stops search
+    /// on some training seeds, while the one that keeps it lets the budget
+    /// slip; seed 0 passed the budget's claims with 0.5 at the start, 1.0
+    /// from 5200 and 3.0 from 7200 updates on (results/eppo_darkroom_budget,
+    /// dw1 -> dw1p -> dw1q).
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub over_budget_price_schedule: Vec<PriceChange>,
+    /// `penalty = "terminate"`: the reward the critics see on top of the step
+    /// where their value ends, the step that overspends. Sun et al.'s r_e,
+    /// at most 0: every reward here is at least 0, so ending the value
+    /// already costs what the rest of the trajectory was worth.
     #[serde(default)]
-    pub target_entropy: Option<f64>,
-    /// Step size of the entropy weight's log-space update.
-    #[serde(default = "default_entropy_coef_lr")]
-    pub entropy_coef_lr: f64,
-    /// Rewards are multiplied by this in the TD targets and the tokens.
-    pub reward_scale: f64,
+    pub termination_reward: f64,
+}
+
+/// `[exploration]`: behaviour noise, bilevel after AMAGO, and the actor's
+/// entropy bonus.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct ExplorationConfig {
     /// Exploration at a trajectory's first step, at the start of training:
     /// epsilon-greedy for discrete actions, added Gaussian noise of scale
     /// epsilon for continuous ones (`sample_actions`). Epsilon is bilevel, after AMAGO: it
@@ -152,40 +340,95 @@ pub struct EppoConfig {
     /// near-on-policy to noisy trajectories.
     #[serde(default)]
     pub eps_random_scale: bool,
-    /// Pretraining task pool: 0 draws a fresh task for every trajectory (the
-    /// paper); n > 0 cycles over the first n task seeds (1: one fixed task,
-    /// the first rung of the debugging ladder).
+    /// Entropy bonus weight in the actor loss (the starting weight with
+    /// `target_entropy`).
+    pub entropy_coef: f64,
+    /// SAC's automatic temperature: after every update the entropy weight
+    /// moves in log space by `entropy_coef_lr` x (target - the batch's policy
+    /// entropy), so the entropy tracks this target (nats, tanh-corrected for
+    /// continuous actions; SAC uses -|A|). A fixed weight lets a continuous
+    /// actor's mean run into tanh's saturation, where its gradient vanishes
+    /// and the policy collapses onto the action bounds (results/
+    /// eppo_point_ladder, rung rg2). Absent: `entropy_coef` stays fixed.
     #[serde(default)]
-    pub task_pool: u64,
-    /// Updates between checkpoints (one is always written at the end).
-    pub checkpoint_every: u64,
-    /// Checkpoints kept (0 keeps all).
-    pub keep_checkpoints: usize,
-    /// Besides the newest `keep_checkpoints`, keep every checkpoint written
-    /// at a multiple of this many updates (0: none), to evaluate the run's
-    /// history or fork from a good stretch that later training lost.
-    #[serde(default)]
-    pub keep_every: u64,
-    /// Point and Car: MuJoCo physics steps per agent action (the macro
-    /// action; 5 Safety-Gymnasium steps x 10 physics steps = 50 when absent).
-    /// SafeDarkRoom has no physics: leave it out. Checkpoints record the
-    /// resolved value; resuming with another is refused.
-    #[serde(default = "default_physics_steps_per_action")]
-    pub physics_steps_per_action: Option<usize>,
+    pub target_entropy: Option<f64>,
+    /// Step size of the entropy weight's log-space update.
+    #[serde(default = "default_entropy_coef_lr")]
+    pub entropy_coef_lr: f64,
+}
+
+/// `[novelty]`: a bonus for the critics during pretraining only, for cells
+/// new to the trajectory. Absent: off (the paper).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct NoveltyConfig {
+    /// After HyperX's meta-training exploration bonuses: a step that
+    /// arrives in a cell this trajectory has not visited earns this much
+    /// reward, until the trajectory's first success. Before the goal is
+    /// found any unseen cell may hold it; after, search is worth nothing, so
+    /// revisits are not taxed. The tokens stay as collected. 0: off (the
+    /// paper).
+    pub novelty_bonus: f64,
+    /// Side of a novelty cell in observation units (the position at
+    /// observation indices 0 and 1): 1 (absent) is one SafeDarkRoom cell.
+    /// Also the cell of the `search_new_cells` metric.
+    pub novelty_cell: f64,
+    /// The novelty bonus gets critics of its own, kept apart from the task's
+    /// reward critics, and the actor weighs them only on steps whose context
+    /// holds no success yet: once a goal is found, nothing of the search
+    /// incentive reaches the steps that should drive back to it. In one
+    /// shared critic, more pay for search cost the revisits on both domains
+    /// (ps3, ps5, ps7, dn1). After RND's separate intrinsic value head.
+    pub novelty_critic: bool,
+    /// How the episode's budget gates the novelty bonus (issue 18). Paid
+    /// everywhere, the bonus let search ignore the budget
+    /// (results/eppo_darkroom_budget, ex4). Older configs'
+    /// `novelty_within_budget = true` reads as `within_budget`.
+    #[serde(
+        alias = "novelty_within_budget",
+        deserialize_with = "novelty_budget_or_bool"
+    )]
+    pub novelty_budget: NoveltyBudget,
+}
+
+impl Default for NoveltyConfig {
+    /// No bonus; a cell of one SafeDarkRoom cell.
+    fn default() -> Self {
+        NoveltyConfig {
+            novelty_bonus: 0.0,
+            novelty_cell: 1.0,
+            novelty_critic: false,
+            novelty_budget: NoveltyBudget::Always,
+        }
+    }
+}
+
+/// `[goal]`: what pretraining tells the critics or shows the agent of the
+/// goal (and the hazards) beyond the paper, each off when absent. The
+/// tokens, and so everything at evaluation, stay as the paper's.
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct GoalConfig {
     /// Hindsight task relabelling (Packer et al., NeurIPS 2021): the share of
     /// sampled trajectories replayed as if the goal had been at a position
     /// they reached ([`relabel`]): rewards, terminations and episode ends
     /// recomputed, costs as recorded. It turns every trajectory into one
     /// that found a goal, and those that pass it again into revisits, the
     /// skill sparse rewards teach slowest. 0: off (the paper).
-    #[serde(default)]
     pub relabel_prob: f64,
-    /// The ladder's "return to a shown goal" rung: the first episode of every
-    /// collected trajectory is driven to the goal by the environment's
-    /// scripted controller (Point and Car), so the success of episodes 2..K
-    /// measures revisiting alone. Off in every preset.
-    #[serde(default)]
-    pub scripted_first_episode: bool,
+    /// A dense reward for the critics during pretraining only, after PEARL's
+    /// sparse-reward point robot: each step's TD reward also gets this times
+    /// the decrease in distance to the goal (potential-based shaping, which
+    /// keeps the optimal policy). The tokens, and so the policy's context and
+    /// everything at evaluation, stay sparse. 0: off (the paper).
+    pub dense_reward_coef: f64,
+    /// Pay `dense_reward_coef` only on steps whose context already holds a
+    /// success (the goal found earlier in the window). Before that the goal
+    /// is unknown to the agent, so progress toward it is noise the history
+    /// cannot predict, and a critic paid for it drifts toward the centre of
+    /// the pretraining goals instead of searching (rung b, rb1). After it,
+    /// the dense reward teaches going back (rung r, rr8).
+    pub dense_reward_after_goal: bool,
     /// An auxiliary loss for pretraining only: a head reads the goal's
     /// position off the trajectory encoding h_t at every step after the
     /// window's first success (the goal then sits in the context, as the
@@ -194,14 +437,12 @@ pub struct EppoConfig {
     /// slowly (results/eppo_point_ladder); this supervises it directly, as
     /// belief decoders do in meta-RL. The head adds to the checkpoint; the
     /// policy never reads it. 0: off (the paper).
-    #[serde(default)]
     pub goal_recall_coef: f64,
     /// The ladder's goal-conditioned rung: the goal's position appended to
     /// every observation (`safety_envs::GoalShown`), so reaching it needs no
     /// memory; its success against the shown-goal rung's separates driving
     /// to a position from recalling one. Alone, such a checkpoint cannot be
     /// evaluated (the tasks hide the goal). Off in every preset.
-    #[serde(default)]
     pub goal_in_observation: bool,
     /// With `goal_in_observation`: the share of trajectories whose goal
     /// slots are blanked (hidden) once `goal_hidden_ramp` ends, rising
@@ -211,129 +452,31 @@ pub struct EppoConfig {
     /// in a growing share of trajectories, the blank slots standing for
     /// "find it". A checkpoint trained with hidden goals is evaluated with
     /// the slots blank. 0: always shown.
-    #[serde(default)]
     pub goal_hidden_share: f64,
     /// Environment steps `[from, until]` over which the hidden share rises
     /// from 0 to `goal_hidden_share` (environment steps, as the exploration
     /// schedule, so that collection alone decides it).
-    #[serde(default)]
     pub goal_hidden_ramp: [u64; 2],
     /// The robots' ladder's hazard rung: the task's hazard cells appended to
     /// every observation as a map (`safety_envs::HazardsShown`), so that the
     /// policy can route around hazards it has not paid for. Not with
     /// `goal_in_observation` (one kind of slots at a time). Alone, such a
     /// checkpoint cannot be evaluated (the tasks hide the map).
-    #[serde(default)]
     pub hazards_in_observation: bool,
     /// With `hazards_in_observation`: the share of trajectories whose map is
     /// blanked once `hazard_hidden_ramp` ends, rising linearly from 0 across
     /// it, as `goal_hidden_share` does for the goal: routing around a shown
     /// hazard is learned first, around one the context holds second. A
     /// checkpoint trained with hidden maps is evaluated with the map blank.
-    #[serde(default)]
     pub hazard_hidden_share: f64,
     /// Environment steps `[from, until]` over which the hidden share rises
     /// from 0 to `hazard_hidden_share`.
-    #[serde(default)]
     pub hazard_hidden_ramp: [u64; 2],
-    /// A dense reward for the critics during pretraining only, after PEARL's
-    /// sparse-reward point robot: each step's TD reward also gets this times
-    /// the decrease in distance to the goal (potential-based shaping, which
-    /// keeps the optimal policy). The tokens, and so the policy's context and
-    /// everything at evaluation, stay sparse. 0: off (the paper).
-    #[serde(default)]
-    pub dense_reward_coef: f64,
-    /// Pay `dense_reward_coef` only on steps whose context already holds a
-    /// success (the goal found earlier in the window). Before that the goal
-    /// is unknown to the agent, so progress toward it is noise the history
-    /// cannot predict, and a critic paid for it drifts toward the centre of
-    /// the pretraining goals instead of searching (rung b, rb1). After it,
-    /// the dense reward teaches going back (rung r, rr8).
-    #[serde(default)]
-    pub dense_reward_after_goal: bool,
-    /// A bonus for the critics during pretraining only, after HyperX's
-    /// meta-training exploration bonuses: a step that arrives in a cell this
-    /// trajectory has not visited earns this much reward, until the
-    /// trajectory's first success. Before the goal is found any unseen cell
-    /// may hold it; after, search is worth nothing, so revisits are not
-    /// taxed. The tokens stay as collected. 0: off (the paper).
-    #[serde(default)]
-    pub novelty_bonus: f64,
-    /// Side of a novelty cell in observation units (the position at
-    /// observation indices 0 and 1): 1 is one SafeDarkRoom cell. Also the
-    /// cell of the `search_new_cells` metric.
-    #[serde(default = "default_novelty_cell")]
-    pub novelty_cell: f64,
-    /// The novelty bonus gets critics of its own, kept apart from the task's
-    /// reward critics, and the actor weighs them only on steps whose context
-    /// holds no success yet: once a goal is found, nothing of the search
-    /// incentive reaches the steps that should drive back to it. In one
-    /// shared critic, more pay for search cost the revisits on both domains
-    /// (ps3, ps5, ps7, dn1). After RND's separate intrinsic value head.
-    #[serde(default)]
-    pub novelty_critic: bool,
-    /// How the episode's budget gates the novelty bonus (issue 18). Paid
-    /// everywhere, the bonus let search ignore the budget
-    /// (results/eppo_darkroom_budget, ex4). Older configs'
-    /// `novelty_within_budget = true` reads as `within_budget`.
-    #[serde(
-        default,
-        alias = "novelty_within_budget",
-        deserialize_with = "novelty_budget_or_bool"
-    )]
-    pub novelty_budget: NoveltyBudget,
-    /// How the budget acts: through the actor's penalty lambda x Qc (on
-    /// which steps), or in the critics' targets (issue 18, issue 19).
-    #[serde(default)]
-    pub penalty: PenaltyForm,
-    /// `penalty = "saute"` or `"excess"`: what each unit of cost paid after
-    /// the budget is spent takes off that step's reward (under Saute, on top
-    /// of its unsafe reward). 0 is Saute's constant, which leaves nothing
-    /// to choose between actions once an episode is over budget, so small
-    /// budgets came out the most costly (results/eppo_darkroom_budget, sa1).
-    #[serde(default, alias = "saute_cost_price")]
-    pub over_budget_cost_price: f64,
-    /// `penalty = "terminate"`: the reward the critics see on top of the step
-    /// where their value ends, the step that overspends. Sun et al.'s r_e,
-    /// at most 0: every reward here is at least 0, so ending the value
-    /// already costs what the rest of the trajectory was worth.
-    #[serde(default)]
-    pub termination_reward: f64,
-    /// Later prices: each `{ after = N, price = P }` charges P per unit of
-    /// excess cost from N updates past the constraint's start on (N rising).
-    /// A price high enough to make the budget bind at the start stops search
-    /// on some training seeds, while the one that keeps it lets the budget
-    /// slip; seed 0 passed the budget's claims with 0.5 at the start, 1.0
-    /// from 5200 and 3.0 from 7200 updates on (results/eppo_darkroom_budget,
-    /// dw1 -> dw1p -> dw1q).
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub over_budget_price_schedule: Vec<PriceChange>,
-
-    // The loop's shape (issue 20): both together, so merges stay simple.
-    /// Collect and learn at once on two threads (`overlap.rs`): an actor
-    /// steps the environments with a copy of the policy, refreshed after
-    /// every round's updates, one round behind the synchronous loop's; the
-    /// learner updates meanwhile. The replay ratio holds whatever either
-    /// side's speed, and a run stays deterministic under its seed. Wants
-    /// `torch_threads = 1` on two cores. false: collect, then update.
-    #[serde(default)]
-    pub overlap: bool,
-    /// The replay ratio as updates per environment step: after each round
-    /// the learner catches up to floor(replay_ratio x (env_steps -
-    /// learning_starts)) updates in total. Absent: `updates_per_round`
-    /// updates after each round (updates per collected trajectory =
-    /// updates_per_round / n_envs), as in the paper's loop.
-    #[serde(default)]
-    pub replay_ratio: Option<f64>,
-    /// Overlapped loop: libtorch threads of the learner's update (0:
-    /// `torch_threads`); the actor keeps `torch_threads`. From 2 on, the
-    /// target network's forward runs on a thread of its own beside the
-    /// online forward, then the backward on all of them. Where the actor
-    /// mostly waits (SafeDarkRoom; Car at 32 updates a round) 2 lends its
-    /// core to the update: 1.45x SafeDarkRoom's updates/s, 1.30x Car's
-    /// (BENCHMARKS.md).
-    #[serde(default)]
-    pub learner_threads: i32,
+    /// The ladder's "return to a shown goal" rung: the first episode of every
+    /// collected trajectory is driven to the goal by the environment's
+    /// scripted controller (Point and Car), so the success of episodes 2..K
+    /// measures revisiting alone. Off in every preset.
+    pub scripted_first_episode: bool,
 }
 
 /// How the episode's budget gates the novelty bonus.
@@ -439,11 +582,6 @@ fn ramp_at([from, until]: [u64; 2], env_steps: u64) -> f64 {
 /// Absent from a config: 20 rounds in the revisit gate's average.
 fn default_constraint_revisit_rounds() -> usize {
     20
-}
-
-/// Absent from a config: one SafeDarkRoom cell.
-fn default_novelty_cell() -> f64 {
-    1.0
 }
 
 fn default_entropy_coef_lr() -> f64 {
@@ -584,9 +722,20 @@ const HAZARD_RECALL: &str = "8a5cee241507924037a24029831611b616eec709";
 const NOVELTY_SHAPES_AND_RAMP: &str = "1096eed9892161592b2878611d3cef89371e88d3";
 const SEARCH_AND_PRICE_VARIANTS: &str = "9441cf84b763fafdac321359355efe089241a33d";
 
-/// Drops the [`RETIRED`] settings of `table` that hold their inert value;
-/// refuses one that does not, naming it.
+/// Drops the [`RETIRED`] settings of `table`, flat or in a section, that
+/// hold their inert value; refuses one that does not, naming it.
 pub fn drop_retired(table: &mut toml::Table) -> Result<(), String> {
+    drop_retired_from(table)?;
+    for (section, _) in EppoConfig::SECTIONS {
+        if let Some(toml::Value::Table(settings)) = table.get_mut(section) {
+            drop_retired_from(settings)?;
+        }
+    }
+    Ok(())
+}
+
+/// [`drop_retired`] on one level of a table.
+fn drop_retired_from(table: &mut toml::Table) -> Result<(), String> {
     for (key, inert, commit) in RETIRED {
         let Some(value) = table.get(key) else {
             continue;
@@ -617,11 +766,255 @@ pub fn drop_retired(table: &mut toml::Table) -> Result<(), String> {
 }
 
 impl EppoConfig {
+    /// Every setting by its section, in one place: a flat config (every
+    /// config written before the sections) is moved into them by
+    /// [`EppoConfig::migrate`], and `--set NAME=VALUE` finds NAME's section
+    /// here ([`EppoConfig::apply_sets`]). Names are unique across sections.
+    /// The transformer's own settings are `model.NAME` in both forms; the
+    /// older names `saute_cost_price` and `novelty_within_budget`, which
+    /// their fields still read, move with them.
+    pub const SECTIONS: [(&'static str, &'static [&'static str]); 9] = [
+        (
+            "run",
+            &[
+                "seed",
+                "device",
+                "torch_threads",
+                "env_threads",
+                "overlap",
+                "learner_threads",
+                "checkpoint_every",
+                "keep_checkpoints",
+                "keep_every",
+            ],
+        ),
+        (
+            "tasks",
+            &[
+                "max_episode_steps",
+                "k_min",
+                "k_max",
+                "ctg_min",
+                "ctg_max",
+                "n_envs",
+                "physics_steps_per_action",
+                "task_pool",
+            ],
+        ),
+        ("model", &["encoder_hidden", "head_hidden", "n_critics"]),
+        (
+            "optimisation",
+            &[
+                "lr",
+                "beta1",
+                "beta2",
+                "adam_eps",
+                "grad_clip",
+                "critic_weight",
+                "batch_size",
+                "total_updates",
+                "updates_per_round",
+                "learning_starts",
+                "replay_ratio",
+            ],
+        ),
+        (
+            "targets",
+            &[
+                "gamma",
+                "bootstrap_across_episodes",
+                "tau",
+                "n_step",
+                "reward_scale",
+                "replay_capacity",
+            ],
+        ),
+        (
+            "constraint",
+            &[
+                "penalty",
+                "lambda_lr",
+                "lambda_max",
+                "lambda_init",
+                "per_episode_multipliers",
+                "lambda_warmup_updates",
+                "constraint_after_revisit",
+                "constraint_revisit_rounds",
+                "over_budget_cost_price",
+                "saute_cost_price",
+                "over_budget_price_schedule",
+                "termination_reward",
+            ],
+        ),
+        (
+            "exploration",
+            &[
+                "eps_start",
+                "eps_end",
+                "eps_decay_steps",
+                "eps_last_start",
+                "eps_last_end",
+                "eps_random_scale",
+                "entropy_coef",
+                "target_entropy",
+                "entropy_coef_lr",
+            ],
+        ),
+        (
+            "novelty",
+            &[
+                "novelty_bonus",
+                "novelty_cell",
+                "novelty_critic",
+                "novelty_budget",
+                "novelty_within_budget",
+            ],
+        ),
+        (
+            "goal",
+            &[
+                "relabel_prob",
+                "dense_reward_coef",
+                "dense_reward_after_goal",
+                "goal_recall_coef",
+                "goal_in_observation",
+                "goal_hidden_share",
+                "goal_hidden_ramp",
+                "hazards_in_observation",
+                "hazard_hidden_share",
+                "hazard_hidden_ramp",
+                "scripted_first_episode",
+            ],
+        ),
+    ];
+
+    /// The section that holds setting `name` ([`EppoConfig::SECTIONS`]).
+    pub fn section_of(name: &str) -> Option<&'static str> {
+        Self::SECTIONS
+            .iter()
+            .find(|(_, names)| names.contains(&name))
+            .map(|(section, _)| *section)
+    }
+
+    /// Moves each setting of a flat config into its section (the sectioned
+    /// form is left as it is; a mix of both is read too). Refuses, by name,
+    /// a setting given twice (flat and in its section) or in a section not
+    /// its own. Names of no section (retired or unknown) stay where they
+    /// are, for [`EppoConfig::from_table`] to drop or refuse.
+    pub fn migrate(table: &mut toml::Table) -> Result<(), String> {
+        for (section, _) in Self::SECTIONS {
+            let Some(settings) = table.get(section).and_then(toml::Value::as_table) else {
+                continue;
+            };
+            if let Some((key, own)) = settings
+                .keys()
+                .find_map(|key| Some((key, Self::section_of(key)?)).filter(|(_, s)| s != &section))
+            {
+                return Err(format!(
+                    "[{section}] holds {key}, a setting of [{own}]: move it there"
+                ));
+            }
+        }
+        let flat: Vec<String> = table
+            .keys()
+            .filter(|key| Self::section_of(key).is_some())
+            .cloned()
+            .collect();
+        for key in flat {
+            let section = Self::section_of(&key).expect("filtered on it");
+            let value = table.remove(&key).expect("a key of the table");
+            let entry = table
+                .entry(section)
+                .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+            let Some(settings) = entry.as_table_mut() else {
+                return Err(format!(
+                    "{section} = {entry} must be a table of settings ([{section}])"
+                ));
+            };
+            if settings.contains_key(&key) {
+                return Err(format!(
+                    "{key} is set twice, at the top (the flat form of older configs) and in \
+                     [{section}]: keep one"
+                ));
+            }
+            settings.insert(key, value);
+        }
+        Ok(())
+    }
+
+    /// `--set NAME=VALUE`s on an EPPO config's table, flat or sectioned:
+    /// the table moves into sections ([`EppoConfig::migrate`]), then a NAME
+    /// of [`EppoConfig::SECTIONS`] applies in its section (`lambda_max=1` as
+    /// `constraint.lambda_max=1`), a dotted one (`model.n_layers=2`,
+    /// `constraint.lambda_max=1`) as it is, and any other at the top, where
+    /// [`EppoConfig::from_table`] refuses it by name.
+    pub fn apply_sets(table: &mut toml::Table, sets: &[String]) -> Result<(), EppoError> {
+        Self::migrate(table).map_err(EppoError::Config)?;
+        let mut sets = sets.to_vec();
+        for set in &mut sets {
+            let Some((key, value)) = set.split_once('=') else {
+                continue; // refused by apply_overrides, as given
+            };
+            let key = key.trim();
+            let section = match (Self::section_of(key), key.split_once('.')) {
+                (Some(section), _) => {
+                    *set = format!("{section}.{key}={value}");
+                    section
+                }
+                (None, Some((section, _))) => section,
+                (None, None) => continue,
+            };
+            // The optional sections may be absent.
+            if Self::SECTIONS.iter().any(|(s, _)| *s == section) {
+                table
+                    .entry(section)
+                    .or_insert_with(|| toml::Value::Table(toml::Table::new()));
+            }
+        }
+        crate::presets::apply_overrides(table, &sets).map_err(|e| EppoError::Config(e.to_string()))
+    }
+
+    /// The value of setting `name` in a config's table, flat or sectioned
+    /// (any other table: its own `name`).
+    pub fn setting<'a>(table: &'a toml::Table, name: &str) -> Option<&'a toml::Value> {
+        table
+            .get(name)
+            .or_else(|| table.get(Self::section_of(name)?)?.get(name))
+    }
+
+    /// A setting's name as `--set` and messages give it: `lambda_max` for
+    /// `constraint.lambda_max`; the transformer's `model.d_model`, and any
+    /// other name, as it is.
+    pub fn flat_name(dotted: &str) -> &str {
+        match dotted.split_once('.') {
+            Some((section, name)) if Self::section_of(name) == Some(section) => name,
+            _ => dotted,
+        }
+    }
+
     /// A config from a TOML table (a preset with its `--set`s, or a run's
-    /// `config.toml`), written before or after the [`RETIRED`] settings went.
+    /// `config.toml`), in sections or in the flat form written before them
+    /// ([`EppoConfig::migrate`]), and before or after the [`RETIRED`]
+    /// settings went. An unknown name is refused with the valid ones.
     /// `name` says where the table came from, in errors.
     pub fn from_table(name: &str, mut table: toml::Table) -> Result<Self, EppoError> {
-        drop_retired(&mut table).map_err(|e| EppoError::Config(format!("{name}: {e}")))?;
+        let refuse = |e: String| EppoError::Config(format!("{name}: {e}"));
+        drop_retired(&mut table).map_err(refuse)?;
+        Self::migrate(&mut table).map_err(refuse)?;
+        if let Some(key) = table
+            .keys()
+            .find(|key| Self::SECTIONS.iter().all(|(section, _)| section != key))
+        {
+            let known: Vec<String> = Self::SECTIONS
+                .iter()
+                .map(|(section, names)| format!("[{section}] {}", names.join(", ")))
+                .collect();
+            return Err(refuse(format!(
+                "unknown setting {key:?}; the settings, flat or in their sections, are: {} \
+                 (and the transformer's in [model])",
+                known.join("; ")
+            )));
+        }
         crate::presets::resolve::<EppoConfig>(name, table)
             .map_err(|e| EppoError::Config(e.to_string()))
     }
@@ -634,96 +1027,135 @@ impl EppoConfig {
     pub fn validate(&self) -> Result<(), EppoError> {
         use crate::guard::{Range, check_counts, check_numbers};
         let bad = |m: String| Err(EppoError::Config(m));
-        self.model.validate()?;
+        self.model.transformer.validate()?;
         check_counts(&[
-            ("max_episode_steps", self.max_episode_steps as i128),
-            ("k_min", self.k_min as i128),
-            ("k_max", self.k_max as i128),
-            ("n_envs", self.n_envs as i128),
-            ("env_threads", self.env_threads as i128),
-            ("replay_capacity", self.replay_capacity as i128),
-            ("encoder_hidden", i128::from(self.encoder_hidden)),
-            ("head_hidden", i128::from(self.head_hidden)),
-            ("n_critics", i128::from(self.n_critics)),
-            ("batch_size", self.batch_size as i128),
-            ("total_updates", i128::from(self.total_updates)),
-            ("updates_per_round", i128::from(self.updates_per_round)),
-            ("checkpoint_every", i128::from(self.checkpoint_every)),
-            ("n_step", self.n_step as i128),
+            ("max_episode_steps", self.tasks.max_episode_steps as i128),
+            ("k_min", self.tasks.k_min as i128),
+            ("k_max", self.tasks.k_max as i128),
+            ("n_envs", self.tasks.n_envs as i128),
+            ("env_threads", self.run.env_threads as i128),
+            ("replay_capacity", self.targets.replay_capacity as i128),
+            ("encoder_hidden", i128::from(self.model.encoder_hidden)),
+            ("head_hidden", i128::from(self.model.head_hidden)),
+            ("n_critics", i128::from(self.model.n_critics)),
+            ("batch_size", self.optimisation.batch_size as i128),
+            ("total_updates", i128::from(self.optimisation.total_updates)),
+            (
+                "updates_per_round",
+                i128::from(self.optimisation.updates_per_round),
+            ),
+            ("checkpoint_every", i128::from(self.run.checkpoint_every)),
+            ("n_step", self.targets.n_step as i128),
             (
                 "physics_steps_per_action",
-                self.physics_steps_per_action.map_or(1, |n| n as i128),
+                self.tasks.physics_steps_per_action.map_or(1, |n| n as i128),
             ),
         ])
         .or_else(bad)?;
-        crate::guard::check_torch_threads(self.torch_threads).or_else(bad)?;
-        if !(0..=1024).contains(&self.learner_threads) {
+        crate::guard::check_torch_threads(self.run.torch_threads).or_else(bad)?;
+        if !(0..=1024).contains(&self.run.learner_threads) {
             return bad(format!(
                 "learner_threads = {}: must be in [0, 1024] (0: torch_threads)",
-                self.learner_threads
+                self.run.learner_threads
             ));
         }
         check_numbers(&[
-            ("ctg_min", f64::from(self.ctg_min), Range::NON_NEGATIVE),
-            ("ctg_max", f64::from(self.ctg_max), Range::POSITIVE),
-            ("gamma", self.gamma, Range::UNIT_OPEN_HIGH),
-            ("tau", self.tau, Range::UNIT_OPEN_LOW),
-            ("lr", self.lr, Range::UNIT_OPEN_LOW),
-            ("beta1", self.beta1, Range::UNIT_OPEN_HIGH),
-            ("beta2", self.beta2, Range::UNIT_OPEN_HIGH),
-            ("adam_eps", self.adam_eps, Range::UNIT_OPEN_LOW),
-            ("grad_clip", self.grad_clip, Range::POSITIVE),
-            ("lambda_lr", self.lambda_lr, Range::NON_NEGATIVE),
-            ("lambda_max", self.lambda_max, Range::NON_NEGATIVE),
-            ("lambda_init", self.lambda_init, Range::NON_NEGATIVE),
-            ("critic_weight", self.critic_weight, Range::POSITIVE),
-            ("entropy_coef", self.entropy_coef, Range::NON_NEGATIVE),
-            ("entropy_coef_lr", self.entropy_coef_lr, Range::NON_NEGATIVE),
+            (
+                "ctg_min",
+                f64::from(self.tasks.ctg_min),
+                Range::NON_NEGATIVE,
+            ),
+            ("ctg_max", f64::from(self.tasks.ctg_max), Range::POSITIVE),
+            ("gamma", self.targets.gamma, Range::UNIT_OPEN_HIGH),
+            ("tau", self.targets.tau, Range::UNIT_OPEN_LOW),
+            ("lr", self.optimisation.lr, Range::UNIT_OPEN_LOW),
+            ("beta1", self.optimisation.beta1, Range::UNIT_OPEN_HIGH),
+            ("beta2", self.optimisation.beta2, Range::UNIT_OPEN_HIGH),
+            ("adam_eps", self.optimisation.adam_eps, Range::UNIT_OPEN_LOW),
+            ("grad_clip", self.optimisation.grad_clip, Range::POSITIVE),
+            ("lambda_lr", self.constraint.lambda_lr, Range::NON_NEGATIVE),
+            (
+                "lambda_max",
+                self.constraint.lambda_max,
+                Range::NON_NEGATIVE,
+            ),
+            (
+                "lambda_init",
+                self.constraint.lambda_init,
+                Range::NON_NEGATIVE,
+            ),
+            (
+                "critic_weight",
+                self.optimisation.critic_weight,
+                Range::POSITIVE,
+            ),
+            (
+                "entropy_coef",
+                self.exploration.entropy_coef,
+                Range::NON_NEGATIVE,
+            ),
+            (
+                "entropy_coef_lr",
+                self.exploration.entropy_coef_lr,
+                Range::NON_NEGATIVE,
+            ),
             // Scaled rewards go into float32 tokens: keep them far from overflow.
             (
                 "reward_scale",
-                self.reward_scale,
+                self.targets.reward_scale,
                 Range::new(0.0, true, 1e6, false),
             ),
-            ("eps_start", self.eps_start, Range::UNIT),
-            ("eps_end", self.eps_end, Range::UNIT),
-            ("relabel_prob", self.relabel_prob, Range::UNIT),
+            ("eps_start", self.exploration.eps_start, Range::UNIT),
+            ("eps_end", self.exploration.eps_end, Range::UNIT),
+            ("relabel_prob", self.goal.relabel_prob, Range::UNIT),
             (
                 "goal_recall_coef",
-                self.goal_recall_coef,
+                self.goal.goal_recall_coef,
                 Range::NON_NEGATIVE,
             ),
             (
                 "dense_reward_coef",
-                self.dense_reward_coef,
+                self.goal.dense_reward_coef,
                 Range::NON_NEGATIVE,
             ),
-            ("novelty_bonus", self.novelty_bonus, Range::NON_NEGATIVE),
-            ("novelty_cell", self.novelty_cell, Range::POSITIVE),
-            ("goal_hidden_share", self.goal_hidden_share, Range::UNIT),
-            ("hazard_hidden_share", self.hazard_hidden_share, Range::UNIT),
+            (
+                "novelty_bonus",
+                self.novelty.novelty_bonus,
+                Range::NON_NEGATIVE,
+            ),
+            ("novelty_cell", self.novelty.novelty_cell, Range::POSITIVE),
+            (
+                "goal_hidden_share",
+                self.goal.goal_hidden_share,
+                Range::UNIT,
+            ),
+            (
+                "hazard_hidden_share",
+                self.goal.hazard_hidden_share,
+                Range::UNIT,
+            ),
             (
                 "over_budget_cost_price",
-                self.over_budget_cost_price,
+                self.constraint.over_budget_cost_price,
                 Range::NON_NEGATIVE,
             ),
             (
                 "termination_reward",
-                self.termination_reward,
+                self.constraint.termination_reward,
                 Range::new(f64::NEG_INFINITY, true, 0.0, false),
             ),
         ])
         .or_else(bad)?;
-        if let Some(t) = self.target_entropy
-            && !(t.is_finite() && self.entropy_coef > 0.0)
+        if let Some(t) = self.exploration.target_entropy
+            && !(t.is_finite() && self.exploration.entropy_coef > 0.0)
         {
             return bad(format!(
                 "target_entropy = {t} needs a finite target and a positive starting \
                  entropy_coef (got {}): the weight moves in log space",
-                self.entropy_coef
+                self.exploration.entropy_coef
             ));
         }
-        if self.dense_reward_after_goal && self.dense_reward_coef == 0.0 {
+        if self.goal.dense_reward_after_goal && self.goal.dense_reward_coef == 0.0 {
             return bad(
                 "dense_reward_after_goal = true pays nothing with dense_reward_coef = 0: \
                  set dense_reward_coef > 0, or drop dense_reward_after_goal"
@@ -731,11 +1163,11 @@ impl EppoConfig {
             );
         }
         if matches!(
-            self.penalty,
+            self.constraint.penalty,
             PenaltyForm::Saute | PenaltyForm::Excess | PenaltyForm::Terminate
-        ) && (self.lambda_init != 0.0 || self.lambda_lr != 0.0)
+        ) && (self.constraint.lambda_init != 0.0 || self.constraint.lambda_lr != 0.0)
         {
-            let form = match self.penalty {
+            let form = match self.constraint.penalty {
                 PenaltyForm::Saute => "saute",
                 PenaltyForm::Excess => "excess",
                 _ => "terminate",
@@ -745,40 +1177,54 @@ impl EppoConfig {
                  multiplier must stay at 0: set lambda_init = 0 and lambda_lr = 0"
             ));
         }
-        if self.over_budget_cost_price > 0.0
-            && !matches!(self.penalty, PenaltyForm::Saute | PenaltyForm::Excess)
+        if self.constraint.over_budget_cost_price > 0.0
+            && !matches!(
+                self.constraint.penalty,
+                PenaltyForm::Saute | PenaltyForm::Excess
+            )
         {
             return bad(format!(
                 "over_budget_cost_price = {} is charged only under penalty = \"excess\" or \
                  \"saute\": set one of them, or set over_budget_cost_price = 0",
-                self.over_budget_cost_price
+                self.constraint.over_budget_cost_price
             ));
         }
-        if self.termination_reward != 0.0 && self.penalty != PenaltyForm::Terminate {
+        if self.constraint.termination_reward != 0.0
+            && self.constraint.penalty != PenaltyForm::Terminate
+        {
             return bad(format!(
                 "termination_reward = {} is the reward where penalty = \"terminate\" ends the \
                  critics' value, and penalty is not \"terminate\": set it, or drop \
                  termination_reward",
-                self.termination_reward
+                self.constraint.termination_reward
             ));
         }
-        if self.penalty == PenaltyForm::Excess && self.over_budget_cost_price <= 0.0 {
+        if self.constraint.penalty == PenaltyForm::Excess
+            && self.constraint.over_budget_cost_price <= 0.0
+        {
             return bad(format!(
                 "penalty = \"excess\" with over_budget_cost_price = {} charges nothing past the \
                  budget: set over_budget_cost_price > 0 (1.0 prices a unit of excess cost \
                  like one goal)",
-                self.over_budget_cost_price
+                self.constraint.over_budget_cost_price
             ));
         }
-        if !self.over_budget_price_schedule.is_empty() {
-            if !matches!(self.penalty, PenaltyForm::Saute | PenaltyForm::Excess) {
+        if !self.constraint.over_budget_price_schedule.is_empty() {
+            if !matches!(
+                self.constraint.penalty,
+                PenaltyForm::Saute | PenaltyForm::Excess
+            ) {
                 return bad(
                     "over_budget_price_schedule changes the price that penalty = \"excess\" or \
                      \"saute\" charges: set one of them, or drop the schedule"
                         .to_string(),
                 );
             }
-            let afters = self.over_budget_price_schedule.iter().map(|c| c.after);
+            let afters = self
+                .constraint
+                .over_budget_price_schedule
+                .iter()
+                .map(|c| c.after);
             if afters.clone().zip(afters.skip(1)).any(|(a, b)| a >= b) {
                 return bad(
                     "over_budget_price_schedule's `after` values must rise from one change to \
@@ -787,6 +1233,7 @@ impl EppoConfig {
                 );
             }
             if let Some(c) = self
+                .constraint
                 .over_budget_price_schedule
                 .iter()
                 .find(|c| !(c.price.is_finite() && c.price >= 0.0))
@@ -798,52 +1245,54 @@ impl EppoConfig {
                 ));
             }
         }
-        if self.novelty_budget != NoveltyBudget::Always && self.novelty_bonus == 0.0 {
+        if self.novelty.novelty_budget != NoveltyBudget::Always && self.novelty.novelty_bonus == 0.0
+        {
             return bad(
                 "novelty_budget gates the novelty bonus, which is off (novelty_bonus = 0): set \
                  novelty_bonus > 0, or drop novelty_budget"
                     .to_string(),
             );
         }
-        if self.novelty_critic && self.novelty_bonus == 0.0 {
+        if self.novelty.novelty_critic && self.novelty.novelty_bonus == 0.0 {
             return bad(
                 "novelty_critic learns the novelty bonus's value, which is off (novelty_bonus = \
                  0): set novelty_bonus > 0, or drop novelty_critic"
                     .to_string(),
             );
         }
-        if self.goal_hidden_share > 0.0 && !self.goal_in_observation {
+        if self.goal.goal_hidden_share > 0.0 && !self.goal.goal_in_observation {
             return bad(
                 "goal_hidden_share > 0 hides the goal slots of goal_in_observation in some \
                  trajectories: set goal_in_observation = true, or goal_hidden_share = 0"
                     .to_string(),
             );
         }
-        if self.goal_hidden_ramp[0] > self.goal_hidden_ramp[1] {
+        if self.goal.goal_hidden_ramp[0] > self.goal.goal_hidden_ramp[1] {
             return bad(format!(
                 "goal_hidden_ramp = {:?} must rise ([from, until] environment steps, from <= until)",
-                self.goal_hidden_ramp
+                self.goal.goal_hidden_ramp
             ));
         }
-        if self.hazards_in_observation && self.goal_in_observation {
+        if self.goal.hazards_in_observation && self.goal.goal_in_observation {
             return bad(
                 "hazards_in_observation and goal_in_observation both append slots to the observation: set one of them to false"
                     .to_string(),
             );
         }
-        if self.hazard_hidden_share > 0.0 && !self.hazards_in_observation {
+        if self.goal.hazard_hidden_share > 0.0 && !self.goal.hazards_in_observation {
             return bad(
                 "hazard_hidden_share > 0 hides the hazard map of hazards_in_observation in some trajectories: set hazards_in_observation = true, or hazard_hidden_share = 0"
                     .to_string(),
             );
         }
-        if self.hazard_hidden_ramp[0] > self.hazard_hidden_ramp[1] {
+        if self.goal.hazard_hidden_ramp[0] > self.goal.hazard_hidden_ramp[1] {
             return bad(format!(
                 "hazard_hidden_ramp = {:?} must rise ([from, until] environment steps, from <= until)",
-                self.hazard_hidden_ramp
+                self.goal.hazard_hidden_ramp
             ));
         }
-        if self.novelty_budget == NoveltyBudget::WithinBudget && self.penalty != PenaltyForm::Excess
+        if self.novelty.novelty_budget == NoveltyBudget::WithinBudget
+            && self.constraint.penalty != PenaltyForm::Excess
         {
             return bad(
                 "novelty_budget = \"within_budget\" needs penalty = \"excess\" (it withholds \
@@ -851,7 +1300,7 @@ impl EppoConfig {
                     .to_string(),
             );
         }
-        if let Some(t) = self.constraint_after_revisit
+        if let Some(t) = self.constraint.constraint_after_revisit
             && !(t > 0.0 && t <= 1.0)
         {
             return bad(format!(
@@ -859,56 +1308,64 @@ impl EppoConfig {
                  to start the constraint after lambda_warmup_updates alone"
             ));
         }
-        if self.per_episode_multipliers && self.penalty != PenaltyForm::Hindsight {
+        if self.constraint.per_episode_multipliers
+            && self.constraint.penalty != PenaltyForm::Hindsight
+        {
             return bad(
                 "per_episode_multipliers charges each episode's multiplier on its steps' hindsight \
                  flag: set penalty = \"hindsight\", or drop per_episode_multipliers"
                     .to_string(),
             );
         }
-        if self.constraint_revisit_rounds == 0 {
+        if self.constraint.constraint_revisit_rounds == 0 {
             return bad(
                 "constraint_revisit_rounds = 0 averages nothing: set it to 1 or more (20 by default)"
                     .to_string(),
             );
         }
-        if let Some(r) = self.replay_ratio
+        if let Some(r) = self.optimisation.replay_ratio
             && !(r.is_finite() && r > 0.0)
         {
             return bad(format!(
                 "replay_ratio = {r} must be a positive number (updates per environment step)"
             ));
         }
-        if self.k_min == 0 || self.k_min > self.k_max {
+        if self.tasks.k_min == 0 || self.tasks.k_min > self.tasks.k_max {
             return bad(format!(
                 "need 1 <= k_min <= k_max, got k_min = {}, k_max = {}",
-                self.k_min, self.k_max
+                self.tasks.k_min, self.tasks.k_max
             ));
         }
-        let longest = self.k_max.saturating_mul(self.max_episode_steps);
-        if longest as u128 > self.model.max_len as u128 {
+        let longest = self
+            .tasks
+            .k_max
+            .saturating_mul(self.tasks.max_episode_steps);
+        if longest as u128 > self.model.transformer.max_len as u128 {
             return bad(format!(
                 "a trajectory of k_max * max_episode_steps = {} * {} = {longest} steps exceeds model.max_len = {}",
-                self.k_max, self.max_episode_steps, self.model.max_len
+                self.tasks.k_max, self.tasks.max_episode_steps, self.model.transformer.max_len
             ));
         }
-        if !(self.ctg_min >= 0.0 && self.ctg_min <= self.ctg_max && self.ctg_max > 0.0) {
+        if !(self.tasks.ctg_min >= 0.0
+            && self.tasks.ctg_min <= self.tasks.ctg_max
+            && self.tasks.ctg_max > 0.0)
+        {
             return bad(format!(
                 "need 0 <= ctg_min <= ctg_max, ctg_max > 0; got {} and {}",
-                self.ctg_min, self.ctg_max
+                self.tasks.ctg_min, self.tasks.ctg_max
             ));
         }
-        if self.lambda_init > self.lambda_max {
+        if self.constraint.lambda_init > self.constraint.lambda_max {
             return bad(format!(
                 "need 0 <= lambda_init <= lambda_max; got {} and {}",
-                self.lambda_init, self.lambda_max
+                self.constraint.lambda_init, self.constraint.lambda_max
             ));
         }
         for (name, v) in [
-            ("eps_start", Some(self.eps_start)),
-            ("eps_end", Some(self.eps_end)),
-            ("eps_last_start", self.eps_last_start),
-            ("eps_last_end", self.eps_last_end),
+            ("eps_start", Some(self.exploration.eps_start)),
+            ("eps_end", Some(self.exploration.eps_end)),
+            ("eps_last_start", self.exploration.eps_last_start),
+            ("eps_last_end", self.exploration.eps_last_end),
         ] {
             if let Some(v) = v
                 && !(0.0..=1.0).contains(&v)
@@ -916,40 +1373,41 @@ impl EppoConfig {
                 return bad(format!("{name} = {v} must lie in [0, 1]"));
             }
         }
-        if self.replay_capacity < longest {
+        if self.targets.replay_capacity < longest {
             return bad(format!(
                 "replay_capacity = {} cannot hold one trajectory of {longest} steps",
-                self.replay_capacity
+                self.targets.replay_capacity
             ));
         }
         // Counts and ratios bounded by what the run can use, so that no
         // setting leaves it computing one update for hours or waiting forever.
-        if self.n_step > longest {
+        if self.targets.n_step > longest {
             return bad(format!(
                 "n_step = {}: at most k_max * max_episode_steps = {longest}, the longest \
                  trajectory (a target sums rewards inside one)",
-                self.n_step
+                self.targets.n_step
             ));
         }
-        if self.learning_starts > self.replay_capacity as u64 {
+        if self.optimisation.learning_starts > self.targets.replay_capacity as u64 {
             return bad(format!(
                 "learning_starts = {}: at most replay_capacity = {} environment steps (updates \
                  would wait for more steps than the replay keeps)",
-                self.learning_starts, self.replay_capacity
+                self.optimisation.learning_starts, self.targets.replay_capacity
             ));
         }
-        if let Some(r) = self.replay_ratio {
-            let needed = self.learning_starts as f64 + self.total_updates as f64 / r;
+        if let Some(r) = self.optimisation.replay_ratio {
+            let needed = self.optimisation.learning_starts as f64
+                + self.optimisation.total_updates as f64 / r;
             if needed > MOST_ENV_STEPS {
                 return bad(format!(
                     "replay_ratio = {r:e}: total_updates = {} would need {needed:.3e} environment \
                      steps, more than {MOST_ENV_STEPS:e}; raise it to at least {:.3e}",
-                    self.total_updates,
-                    self.total_updates as f64 / MOST_ENV_STEPS
+                    self.optimisation.total_updates,
+                    self.optimisation.total_updates as f64 / MOST_ENV_STEPS
                 ));
             }
         }
-        parse_device(&self.device)?;
+        parse_device(&self.run.device)?;
         Ok(())
     }
 }
@@ -972,10 +1430,10 @@ impl Exploration {
     }
 }
 
-impl EppoConfig {
+impl ExplorationConfig {
     /// Both ends of the bilevel schedule after `env_steps` of training: each
     /// anneals linearly from its start to its end value over `eps_decay_steps`.
-    pub fn exploration(&self, env_steps: u64) -> Exploration {
+    pub fn schedule(&self, env_steps: u64) -> Exploration {
         let frac = (env_steps as f64 / self.eps_decay_steps.max(1) as f64).min(1.0);
         let anneal = |from: f64, to: f64| from + (to - from) * frac;
         Exploration {
@@ -986,7 +1444,9 @@ impl EppoConfig {
             ),
         }
     }
+}
 
+impl RunConfig {
     /// Which checkpoints the run keeps.
     pub fn retention(&self) -> Retention {
         Retention {
@@ -994,7 +1454,9 @@ impl EppoConfig {
             every: self.keep_every,
         }
     }
+}
 
+impl GoalConfig {
     /// The share of trajectories collected after `env_steps` environment
     /// steps whose goal is hidden (`goal_hidden_share`, `goal_hidden_ramp`).
     pub fn goal_hidden_share_at(&self, env_steps: u64) -> f64 {

@@ -91,7 +91,7 @@ pub(super) fn losses(
     // Dropout and the reparameterisation noise draw from libtorch's generator.
     crate::torch_rng::drawing(|| {
         let (h, ht) = encodings(net, target, &batch.tokens)?; // (B, L, D) each
-        let c = cfg.n_critics;
+        let c = cfg.model.n_critics;
         let (y, yc, yn) = td_targets(net, target, &ht, batch, cfg)?; // (B, L) each
         let td_mask = batch.td_valid.unsqueeze(-1); // (B, L, 1)
         let actor = match net.spec.n_actions {
@@ -258,8 +258,8 @@ fn td_targets(
             bootstrap,
             &batch.td_valid,
             &next_step(v),
-            cfg.gamma,
-            cfg.n_step,
+            cfg.targets.gamma,
+            cfg.targets.n_step,
         ) // (B, L)
     };
     let y = targets(&batch.rewards, &batch.bootstrap, &v);
@@ -310,7 +310,7 @@ fn discrete_actor(
     let idx = batch
         .actions
         .view([batch.actions.size()[0], -1, 1, 1])
-        .expand([-1, -1, cfg.n_critics, 1], false); // (B, L) -> (B, L, C, 1)
+        .expand([-1, -1, cfg.model.n_critics, 1], false); // (B, L) -> (B, L, C, 1)
     let q_taken = q_all.gather(3, &idx, false).squeeze_dim(3); // (B, L, C)
     let qc_taken = qc_all.gather(3, &idx, false).squeeze_dim(3); // (B, L, C)
     let qn_all = net
@@ -330,12 +330,12 @@ fn discrete_actor(
         q += qn.detach().mean_dim(2, false, Kind::Float) * searching(batch).unsqueeze(-1);
     }
     let qc = qc_all.detach().mean_dim(2, false, Kind::Float); // (B, L, A)
-    let penalty = lambda * cfg.reward_scale;
+    let penalty = lambda * cfg.targets.reward_scale;
     let paid = penalised_cost(
         &qc,
         &batch.violated.unsqueeze(-1),
         &batch.ctg.unsqueeze(-1),
-        cfg.penalty,
+        cfg.constraint.penalty,
     ); // (B, L, A)
     let per_action = q.neg() + paid * penalty; // (B, L, A)
     let entropy = (&pi * &logp).sum_dim_intlist(-1, false, Kind::Float).neg(); // (B, L)
@@ -390,8 +390,8 @@ fn continuous_actor(
     let qc = net
         .critic_sa(&net.cost_critic, &hd, &a_hat, true)
         .mean_dim(-1, false, Kind::Float); // (B, L)
-    let penalty = lambda * cfg.reward_scale;
-    let paid = penalised_cost(&qc, &batch.violated, &batch.ctg, cfg.penalty); // (B, L)
+    let penalty = lambda * cfg.targets.reward_scale;
+    let paid = penalised_cost(&qc, &batch.violated, &batch.ctg, cfg.constraint.penalty); // (B, L)
     let objective = q.neg() + paid * penalty + &log_prob * entropy_coef;
     ActorTerms {
         q_taken,

@@ -145,7 +145,9 @@ pub use agent::EppoAgent;
 pub use checkpoint::{drop_replay, recorded_pretrain_tasks};
 pub use collect::{RoundStats, search_rates};
 pub use config::{
-    EppoConfig, EppoError, Exploration, NoveltyBudget, PenaltyForm, PriceChange, parse_device,
+    ConstraintConfig, EppoConfig, EppoError, Exploration, ExplorationConfig, GoalConfig,
+    ModelConfig, NoveltyBudget, NoveltyConfig, OptimisationConfig, PenaltyForm, PriceChange,
+    RunConfig, TargetsConfig, TasksConfig, parse_device,
 };
 pub use losses::{UpdateStats, lambda_update};
 pub use multiplier::{ConstraintStart, Multiplier};
@@ -195,16 +197,16 @@ pub struct Learner {
 }
 
 impl Learner {
-    /// A fresh learner for `env` (networks initialised from `cfg.seed`).
+    /// A fresh learner for `env` (networks initialised from `cfg.run.seed`).
     pub fn new(cfg: EppoConfig, env: EnvName) -> Result<Self, EppoError> {
         cfg.validate()?;
-        let device = parse_device(&cfg.device)?;
-        if cfg.torch_threads > 0 {
-            tch::set_num_threads(cfg.torch_threads);
+        let device = parse_device(&cfg.run.device)?;
+        if cfg.run.torch_threads > 0 {
+            tch::set_num_threads(cfg.run.torch_threads);
         }
         let probe = make_training_env(env, &cfg)?;
         let spec = NetSpec::from_spaces(&probe.observation_space(), &probe.action_space())?;
-        if cfg.scripted_first_episode && probe.goal_seeking_action().is_none() {
+        if cfg.goal.scripted_first_episode && probe.goal_seeking_action().is_none() {
             return Err(EppoError::Config(format!(
                 "scripted_first_episode needs an environment with a scripted goal-seeking \
                  controller (point, car); {env} has none: set scripted_first_episode = false"
@@ -215,7 +217,7 @@ impl Learner {
             .check()
             .map_err(EppoError::Config)?;
         let vs = nn::VarStore::new(device);
-        let net = crate::torch_rng::seeded(cfg.seed, || EppoNet::new(vs.root(), &cfg, &spec))?;
+        let net = crate::torch_rng::seeded(cfg.run.seed, || EppoNet::new(vs.root(), &cfg, &spec))?;
         // The target's own initial draws are overwritten by the copy.
         let mut target_vs = nn::VarStore::new(device);
         let target = EppoNet::new(target_vs.root(), &cfg, &spec)?;
@@ -224,23 +226,23 @@ impl Learner {
         let opt = Adam::new(
             &vs,
             AdamConfig {
-                lr: cfg.lr,
-                beta1: cfg.beta1,
-                beta2: cfg.beta2,
-                eps: cfg.adam_eps,
-                grad_clip: Some(cfg.grad_clip),
+                lr: cfg.optimisation.lr,
+                beta1: cfg.optimisation.beta1,
+                beta2: cfg.optimisation.beta2,
+                eps: cfg.optimisation.adam_eps,
+                grad_clip: Some(cfg.optimisation.grad_clip),
             },
         );
         Ok(Learner {
-            rng: ChaCha8Rng::seed_from_u64(cfg.seed),
-            replay: Replay::new(cfg.replay_capacity),
-            multiplier: if cfg.per_episode_multipliers {
-                Multiplier::per_episode(cfg.lambda_init, cfg.k_max)
+            rng: ChaCha8Rng::seed_from_u64(cfg.run.seed),
+            replay: Replay::new(cfg.targets.replay_capacity),
+            multiplier: if cfg.constraint.per_episode_multipliers {
+                Multiplier::per_episode(cfg.constraint.lambda_init, cfg.tasks.k_max)
             } else {
-                Multiplier::new(cfg.lambda_init)
+                Multiplier::new(cfg.constraint.lambda_init)
             },
             constraint_start: ConstraintStart::default(),
-            entropy_coef: cfg.entropy_coef,
+            entropy_coef: cfg.exploration.entropy_coef,
             updates: 0,
             env_steps: 0,
             tasks_drawn: 0,
@@ -260,7 +262,7 @@ impl Learner {
 
     /// Current epsilon of epsilon-greedy exploration at a trajectory's first step.
     pub fn epsilon(&self) -> f64 {
-        self.cfg.exploration(self.env_steps).first
+        self.cfg.exploration.schedule(self.env_steps).first
     }
 
     /// One update on a batch sampled from the replay: Lv, Lc, Lp, then lambda
@@ -268,19 +270,21 @@ impl Learner {
     pub fn update(&mut self) -> Result<UpdateStats, EppoError> {
         // libtorch's generator (dropout, reparameterisation noise) is reseeded per
         // update, so a resumed run draws what the uninterrupted one would have.
-        let seed = (self.cfg.seed ^ 0x5EED_0000).wrapping_add(self.updates);
+        let seed = (self.cfg.run.seed ^ 0x5EED_0000).wrapping_add(self.updates);
         crate::torch_rng::seeded(seed, || self.update_seeded())
     }
 
     fn update_seeded(&mut self) -> Result<UpdateStats, EppoError> {
         let mut clock = Instant::now();
-        let sampled = self.replay.sample(self.cfg.batch_size, &mut self.rng);
+        let sampled = self
+            .replay
+            .sample(self.cfg.optimisation.batch_size, &mut self.rng);
         let relabelled = relabel_some(
             &sampled,
-            self.cfg.relabel_prob,
+            self.cfg.goal.relabel_prob,
             &self.spec,
             &self.goal_rule,
-            self.cfg.goal_in_observation,
+            self.cfg.goal.goal_in_observation,
             &mut self.rng,
         );
         let trajs: Vec<&Trajectory> = sampled
@@ -300,7 +304,7 @@ impl Learner {
         // relabelled episode cut at its new goal holds only part of them.
         let violations: Vec<f32> = sampled.iter().map(|t| t.max_violation()).collect();
         // Eq. (6)'s per-episode excess, only where its multipliers are on.
-        let excess: Vec<Vec<f32>> = if self.cfg.per_episode_multipliers {
+        let excess: Vec<Vec<f32>> = if self.cfg.constraint.per_episode_multipliers {
             sampled
                 .iter()
                 .map(|t| t.episode_costs.iter().map(|c| c - t.budget).collect())
@@ -310,7 +314,7 @@ impl Learner {
         };
         // Eq. (6): each step's hindsight flag carries its own episode's
         // multiplier, and the losses' lambda is 1.
-        let (batch, lambda) = if self.cfg.per_episode_multipliers {
+        let (batch, lambda) = if self.cfg.constraint.per_episode_multipliers {
             let violated = &batch.violated * self.multiplier.per_step(&batch.episode);
             (Batch { violated, ..batch }, 1.0)
         } else {
@@ -325,9 +329,9 @@ impl Learner {
             self.entropy_coef,
             &self.cfg,
         )?;
-        let mut loss = (&lv + &lc) * self.cfg.critic_weight + &lp;
+        let mut loss = (&lv + &lc) * self.cfg.optimisation.critic_weight + &lp;
         if let Some(recall) = &diag.goal_recall {
-            loss += recall * self.cfg.goal_recall_coef;
+            loss += recall * self.cfg.goal.goal_recall_coef;
         }
         self.times.forward += lap(&mut clock);
         // A NaN or infinite loss or gradient is never applied: the weights
@@ -347,23 +351,26 @@ impl Learner {
         let grad_norm = self.opt.try_step().map_err(non_finite)?;
         self.times.optimizer += lap(&mut clock);
         if self.constrained() {
-            let (eta, max) = (self.cfg.lambda_lr, self.cfg.lambda_max);
-            if self.cfg.per_episode_multipliers {
+            let (eta, max) = (
+                self.cfg.constraint.lambda_lr,
+                self.cfg.constraint.lambda_max,
+            );
+            if self.cfg.constraint.per_episode_multipliers {
                 self.multiplier.update_per_episode(&excess, eta, max);
             } else {
                 self.multiplier.update(&violations, eta, max);
             }
         }
         let entropy_now = entropy.double_value(&[]);
-        if let Some(target) = self.cfg.target_entropy {
+        if let Some(target) = self.cfg.exploration.target_entropy {
             self.entropy_coef = tuned_entropy_coef(
                 self.entropy_coef,
                 entropy_now,
                 target,
-                self.cfg.entropy_coef_lr,
+                self.cfg.exploration.entropy_coef_lr,
             );
         }
-        polyak(&self.target_vs, &self.vs, self.cfg.tau);
+        polyak(&self.target_vs, &self.vs, self.cfg.targets.tau);
         self.updates += 1;
         let stats = UpdateStats {
             value_loss: lv.double_value(&[]),
@@ -398,8 +405,8 @@ impl Learner {
     pub fn constraint_since(&self) -> Option<u64> {
         self.constraint_start.started_at(
             self.updates,
-            self.cfg.lambda_warmup_updates,
-            self.cfg.constraint_after_revisit,
+            self.cfg.constraint.lambda_warmup_updates,
+            self.cfg.constraint.constraint_after_revisit,
         )
     }
 
@@ -417,13 +424,13 @@ impl Learner {
     /// price under the forms that charge one, the termination's reward under
     /// `terminate`, lambda under the others.
     pub fn penalty_reading(&self) -> String {
-        match self.cfg.penalty {
+        match self.cfg.constraint.penalty {
             PenaltyForm::Excess | PenaltyForm::Saute => {
                 format!("over-budget price {:.2}", self.over_budget_price())
             }
             PenaltyForm::Terminate => format!(
                 "overspending ends the value (termination reward {:.2})",
-                self.cfg.termination_reward
+                self.cfg.constraint.termination_reward
             ),
             PenaltyForm::Hindsight | PenaltyForm::Hinge => {
                 format!("lambda {:.4}", self.multiplier.lambda)
@@ -434,13 +441,13 @@ impl Learner {
     /// Takes a collected round's measures into what the learner decides
     /// from them (when the constraint starts).
     pub fn observe_round(&mut self, round: &RoundStats) {
-        if let Some(threshold) = self.cfg.constraint_after_revisit {
+        if let Some(threshold) = self.cfg.constraint.constraint_after_revisit {
             self.constraint_start.observe(
-                round.skill_revisit_rate(self.cfg.goal_in_observation),
+                round.skill_revisit_rate(self.cfg.goal.goal_in_observation),
                 self.updates,
-                self.cfg.lambda_warmup_updates,
+                self.cfg.constraint.lambda_warmup_updates,
                 threshold,
-                self.cfg.constraint_revisit_rounds,
+                self.cfg.constraint.constraint_revisit_rounds,
             );
         }
     }
@@ -450,17 +457,23 @@ impl Learner {
     /// Both loops ask after each round, so the updates per environment step
     /// are the same whichever side is faster.
     pub fn updates_owed(&self) -> u64 {
-        if self.env_steps < self.cfg.learning_starts {
+        if self.env_steps < self.cfg.optimisation.learning_starts {
             return 0;
         }
-        let owed = match self.cfg.replay_ratio {
+        let owed = match self.cfg.optimisation.replay_ratio {
             Some(r) => {
-                let total = (r * (self.env_steps - self.cfg.learning_starts) as f64).floor() as u64;
+                let total = (r * (self.env_steps - self.cfg.optimisation.learning_starts) as f64)
+                    .floor() as u64;
                 total.saturating_sub(self.updates)
             }
-            None => self.cfg.updates_per_round,
+            None => self.cfg.optimisation.updates_per_round,
         };
-        owed.min(self.cfg.total_updates.saturating_sub(self.updates))
+        owed.min(
+            self.cfg
+                .optimisation
+                .total_updates
+                .saturating_sub(self.updates),
+        )
     }
 }
 
@@ -514,7 +527,7 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
         }
         None => {
             let learner = Learner::new(opts.cfg.clone(), opts.env)?;
-            let run = RunDir::create(&opts.out, opts.env.as_str(), "eppo", opts.cfg.seed)?;
+            let run = RunDir::create(&opts.out, opts.env.as_str(), "eppo", opts.cfg.run.seed)?;
             let lock = run.lock()?;
             (run, learner, None, lock)
         }
@@ -522,13 +535,15 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
     let cfg = learner.cfg.clone();
     let ready = (|| -> Result<(), EppoError> {
         run.write_config(&toml::to_string(&cfg).map_err(|e| EppoError::Config(e.to_string()))?)?;
-        run.probe_checkpoint_path(cfg.total_updates)?;
+        run.probe_checkpoint_path(cfg.optimisation.total_updates)?;
         // Weights, Adam's moments and the target weights (a third of the first).
         run.check_room(
             learner.opt.checkpoint_bytes() * 4 / 3 + crate::checkpoint::CHECKPOINT_SLACK,
-            cfg.retention(),
-            cfg.total_updates.saturating_sub(learner.updates),
-            cfg.checkpoint_every,
+            cfg.run.retention(),
+            cfg.optimisation
+                .total_updates
+                .saturating_sub(learner.updates),
+            cfg.run.checkpoint_every,
         )?;
         Ok(())
     })();
@@ -540,20 +555,20 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
         return Err(e);
     }
     let env_options = EnvOptions {
-        max_episode_steps: Some(cfg.max_episode_steps),
-        physics_steps_per_action: cfg.physics_steps_per_action,
+        max_episode_steps: Some(cfg.tasks.max_episode_steps),
+        physics_steps_per_action: cfg.tasks.physics_steps_per_action,
     };
     // The scale the user reads progress against (seconds, even for Car).
-    let random = crate::run_summary::random_policy(opts.env, &env_options, 100, cfg.seed)?;
-    let envs = (0..cfg.n_envs)
+    let random = crate::run_summary::random_policy(opts.env, &env_options, 100, cfg.run.seed)?;
+    let envs = (0..cfg.tasks.n_envs)
         .map(|_| make_training_env(opts.env, &cfg))
         .collect::<Result<Vec<_>, _>>()?;
-    let mut venv = VecEnv::new(envs, cfg.env_threads, true)?;
+    let mut venv = VecEnv::new(envs, cfg.run.env_threads, true)?;
     let mut session = Session::start(run, &learner, opts.progress, random, resumed_from)?;
-    if cfg.overlap {
+    if cfg.run.overlap {
         overlap::train(&mut learner, &mut venv, &mut session)?;
     } else {
-        while learner.updates < cfg.total_updates {
+        while learner.updates < cfg.optimisation.total_updates {
             let round = learner.collect(&mut venv)?;
             learner.observe_round(&round);
             let stats = learn(&mut learner, &mut session)?;
@@ -574,13 +589,13 @@ fn make_training_env(env: EnvName, cfg: &EppoConfig) -> Result<Box<dyn CmdpEnv>,
     let inner = make_env(
         env,
         &EnvOptions {
-            max_episode_steps: Some(cfg.max_episode_steps),
-            physics_steps_per_action: cfg.physics_steps_per_action,
+            max_episode_steps: Some(cfg.tasks.max_episode_steps),
+            physics_steps_per_action: cfg.tasks.physics_steps_per_action,
         },
     )?;
-    Ok(if cfg.goal_in_observation {
+    Ok(if cfg.goal.goal_in_observation {
         Box::new(GoalShown::new(inner))
-    } else if cfg.hazards_in_observation {
+    } else if cfg.goal.hazards_in_observation {
         Box::new(HazardsShown::new(inner, spawn_config(env).grid_size))
     } else {
         inner
@@ -632,7 +647,11 @@ impl Session {
         random: crate::run_summary::ReturnCost,
         resumed_from: Option<PathBuf>,
     ) -> Result<Self, EppoError> {
-        let bar = progress_bar(progress, learner.cfg.total_updates, learner.updates);
+        let bar = progress_bar(
+            progress,
+            learner.cfg.optimisation.total_updates,
+            learner.updates,
+        );
         Ok(Session {
             metrics: MetricsWriter::open(&run.metrics_path())?,
             run,
@@ -665,7 +684,10 @@ impl Session {
     /// Progress, and the checkpoint every `checkpoint_every` updates.
     fn after_update(&mut self, learner: &mut Learner) -> Result<(), EppoError> {
         self.bar.set_position(learner.updates);
-        if learner.updates.is_multiple_of(learner.cfg.checkpoint_every) {
+        if learner
+            .updates
+            .is_multiple_of(learner.cfg.run.checkpoint_every)
+        {
             let clock = Instant::now();
             self.last_ckpt = learner.save_checkpoint(&self.run)?;
             learner.times.logging += clock.elapsed().as_secs_f64();
@@ -716,7 +738,7 @@ impl Session {
         if self.log_lines && self.last_log_line.elapsed().as_secs() >= 30 {
             eprintln!(
                 "update {}/{}  env steps {}  {line}",
-                learner.updates, learner.cfg.total_updates, learner.env_steps
+                learner.updates, learner.cfg.optimisation.total_updates, learner.env_steps
             );
             self.last_log_line = Instant::now();
         }

@@ -166,36 +166,46 @@ impl EppoNet {
     }
 
     fn build(p: nn::Path, cfg: &EppoConfig, spec: &NetSpec) -> Result<Self, EppoError> {
-        let d = cfg.model.d_model;
+        let d = cfg.model.transformer.d_model;
         let a = spec.act_flat() as i64;
         let (actor_out, critic_in, critic_out) = match spec.n_actions {
-            Some(_) => (a, d, cfg.n_critics * a),
-            None => (2 * a, d + a, cfg.n_critics),
+            Some(_) => (a, d, cfg.model.n_critics * a),
+            None => (2 * a, d + a, cfg.model.n_critics),
         };
         Ok(EppoNet {
             spec: spec.clone(),
             enc_1: nn::linear(
                 &p / "enc_1",
                 spec.token_dim() as i64,
-                cfg.encoder_hidden,
+                cfg.model.encoder_hidden,
                 Default::default(),
             ),
-            enc_2: nn::linear(&p / "enc_2", cfg.encoder_hidden, d, Default::default()),
-            transformer: Transformer::new(&p / "transformer", &cfg.model)?,
-            actor: Head::new(&p / "actor", d, cfg.head_hidden, actor_out),
-            critic: Head::new(&p / "critic", critic_in, cfg.head_hidden, critic_out),
-            cost_critic: Head::new(&p / "cost_critic", critic_in, cfg.head_hidden, critic_out),
-            novelty_critic: cfg.novelty_critic.then(|| {
+            enc_2: nn::linear(
+                &p / "enc_2",
+                cfg.model.encoder_hidden,
+                d,
+                Default::default(),
+            ),
+            transformer: Transformer::new(&p / "transformer", &cfg.model.transformer)?,
+            actor: Head::new(&p / "actor", d, cfg.model.head_hidden, actor_out),
+            critic: Head::new(&p / "critic", critic_in, cfg.model.head_hidden, critic_out),
+            cost_critic: Head::new(
+                &p / "cost_critic",
+                critic_in,
+                cfg.model.head_hidden,
+                critic_out,
+            ),
+            novelty_critic: cfg.novelty.novelty_critic.then(|| {
                 Head::new(
                     &p / "novelty_critic",
                     critic_in,
-                    cfg.head_hidden,
+                    cfg.model.head_hidden,
                     critic_out,
                 )
             }),
-            goal_recall: (cfg.goal_recall_coef > 0.0)
-                .then(|| Head::new(&p / "goal_recall", d, cfg.head_hidden, 2)),
-            n_critics: cfg.n_critics,
+            goal_recall: (cfg.goal.goal_recall_coef > 0.0)
+                .then(|| Head::new(&p / "goal_recall", d, cfg.model.head_hidden, 2)),
+            n_critics: cfg.model.n_critics,
         })
     }
 
@@ -282,24 +292,27 @@ pub fn memory_estimate(cfg: &EppoConfig, spec: &NetSpec) -> crate::guard::Memory
     use crate::guard::{transformer_activation_bytes, transformer_parameters};
     let f = |x: usize| x as f64;
     let (d, eh, hh) = (
-        cfg.model.d_model as f64,
-        cfg.encoder_hidden as f64,
-        cfg.head_hidden as f64,
+        cfg.model.transformer.d_model as f64,
+        cfg.model.encoder_hidden as f64,
+        cfg.model.head_hidden as f64,
     );
     let a = f(spec.act_flat());
     let (actor_out, critic_in, critic_out) = match spec.n_actions {
-        Some(_) => (a, d, cfg.n_critics as f64 * a),
-        None => (2.0 * a, d + a, cfg.n_critics as f64),
+        Some(_) => (a, d, cfg.model.n_critics as f64 * a),
+        None => (2.0 * a, d + a, cfg.model.n_critics as f64),
     };
     let head = |i: f64, o: f64| i * hh + hh + hh * hh + hh + hh * o + o;
     let params = f(spec.token_dim()) * eh
         + eh
         + eh * d
         + d
-        + transformer_parameters(&cfg.model)
+        + transformer_parameters(&cfg.model.transformer)
         + head(d, actor_out)
         + 2.0 * head(critic_in, critic_out);
-    let (b, t) = (f(cfg.batch_size), cfg.model.max_len as f64);
+    let (b, t) = (
+        f(cfg.optimisation.batch_size),
+        cfg.model.transformer.max_len as f64,
+    );
     let step_bytes = 4.0 * (f(spec.obs_dim) + a + 3.0) + 15.0;
     let mut m = crate::guard::MemoryEstimate {
         levers:
@@ -307,19 +320,22 @@ pub fn memory_estimate(cfg: &EppoConfig, spec: &NetSpec) -> crate::guard::Memory
                 .into(),
         ..Default::default()
     };
-    m.add("replay", f(cfg.replay_capacity) * step_bytes);
-    if cfg.device == "cuda" {
+    m.add("replay", f(cfg.targets.replay_capacity) * step_bytes);
+    if cfg.run.device == "cuda" {
         return m;
     }
     m.add("parameters (online and target)", 2.0 * 4.0 * params);
     m.add("gradients and Adam moments", 3.0 * 4.0 * params);
     m.add(
         "one batch's activations",
-        1.5 * transformer_activation_bytes(&cfg.model, b) + 2.0 * 4.0 * b * t * f(spec.token_dim()),
+        1.5 * transformer_activation_bytes(&cfg.model.transformer, b)
+            + 2.0 * 4.0 * b * t * f(spec.token_dim()),
     );
     m.add(
         "acting cache",
-        4.0 * f(cfg.n_envs) * t * (2.0 * cfg.model.n_layers as f64 * d + f(spec.token_dim())),
+        4.0 * f(cfg.tasks.n_envs)
+            * t
+            * (2.0 * cfg.model.transformer.n_layers as f64 * d + f(spec.token_dim())),
     );
     m
 }

@@ -109,15 +109,18 @@ pub(super) fn train(
     }
     let quit = AtomicBool::new(false);
     let (env, spec) = (learner.env, learner.spec.clone());
-    let (torch_threads, learner_threads) = (learner.cfg.torch_threads, learner.cfg.learner_threads);
+    let (torch_threads, learner_threads) = (
+        learner.cfg.run.torch_threads,
+        learner.cfg.run.learner_threads,
+    );
     if learner_threads > 0 {
         tch::set_num_threads(learner_threads);
     }
     let result = std::thread::scope(|s| {
         let actor_thread = s.spawn(|| {
-            if actor.cfg.torch_threads > 0 {
+            if actor.cfg.run.torch_threads > 0 {
                 // libtorch's intra-op thread count is per OS thread.
-                tch::set_num_threads(actor.cfg.torch_threads);
+                tch::set_num_threads(actor.cfg.run.torch_threads);
             }
             actor.run(venv, env, &spec, weights_rx, rounds_tx, &quit)
         });
@@ -145,7 +148,7 @@ fn learner_side(
     rounds: Receiver<Round>,
     weights: SyncSender<Vec<Tensor>>,
 ) -> Result<(), EppoError> {
-    while learner.updates < learner.cfg.total_updates {
+    while learner.updates < learner.cfg.optimisation.total_updates {
         let clock = Instant::now();
         let Ok(round) = rounds.recv() else {
             return Ok(());

@@ -323,12 +323,12 @@ pub(super) fn push_token(
         prev_action,
         reward,
         cost,
-        to_go: &[ctg / cfg.ctg_max],
+        to_go: &[ctg / cfg.tasks.ctg_max],
         start,
     };
     tokens::push_token(
         &step,
-        cfg.reward_scale as f32,
+        cfg.targets.reward_scale as f32,
         |o, out| spec.normalise_obs(o, out),
         out,
     );
@@ -376,14 +376,14 @@ pub(super) struct Batch {
 /// positions read through the goal rule's indices (the first two entries of
 /// every observation here). Zero when off; never in a token.
 fn dense_reward(t: &Trajectory, step: usize, spec: &NetSpec, cfg: &EppoConfig) -> f32 {
-    if cfg.dense_reward_coef == 0.0 {
+    if cfg.goal.dense_reward_coef == 0.0 {
         return 0.0;
     }
     let od = spec.obs_dim;
     let before = [t.obs[step * od], t.obs[step * od + 1]];
     let after = [t.next_obs[step * od], t.next_obs[step * od + 1]];
     let progress = GoalRule::distance(before, t.goal) - GoalRule::distance(after, t.goal);
-    cfg.dense_reward_coef as f32 * progress
+    cfg.goal.dense_reward_coef as f32 * progress
 }
 
 /// For each step of `t`, true where the termination ends the critics'
@@ -489,7 +489,7 @@ pub(super) fn make_batch(
     rng: &mut ChaCha8Rng,
     device: Device,
 ) -> Batch {
-    let seq = cfg.model.max_len as usize;
+    let seq = cfg.model.transformer.max_len as usize;
     let windows = sample_windows(trajs, seq, rng);
     let b = trajs.len();
     let l = windows.iter().map(|w| w.1).max().unwrap_or(1);
@@ -514,7 +514,7 @@ pub(super) fn make_batch(
     for (j, (t, &(s, len))) in trajs.iter().zip(&windows).enumerate() {
         let violated: Vec<bool> = t.episodes_over_budget().collect();
         let novel = if shaping.novelty > 0.0 {
-            novel_arrivals(t, spec.obs_dim, cfg.novelty_cell)
+            novel_arrivals(t, spec.obs_dim, cfg.novelty.novelty_cell)
         } else {
             vec![0.0; t.len()]
         };
@@ -523,7 +523,7 @@ pub(super) fn make_batch(
             .map(|end_reward| (end_reward, value_end_steps(t)));
         // The goal is known once found, or throughout when shown.
         let mut found =
-            cfg.goal_in_observation && t.obs.get(..spec.obs_dim).is_some_and(GoalShown::shows);
+            cfg.goal.goal_in_observation && t.obs.get(..spec.obs_dim).is_some_and(GoalShown::shows);
         for i in 0..l {
             let k = j * l + i;
             if i >= len {
@@ -571,13 +571,13 @@ pub(super) fn make_batch(
             );
             acts_f.extend_from_slice(&t.actions[step * a..(step + 1) * a]);
             acts_i.push(t.action_idx.get(step).copied().unwrap_or(0));
-            let dense = if cfg.dense_reward_after_goal && !found {
+            let dense = if cfg.goal.dense_reward_after_goal && !found {
                 0.0
             } else {
                 dense_reward(t, step, spec, cfg)
             };
             let budget_spent = t.budget_spent_after(step);
-            let share = match cfg.novelty_budget {
+            let share = match cfg.novelty.novelty_budget {
                 NoveltyBudget::RemainingShare => (t.ctg[step] / t.budget).clamp(0.0, 1.0),
                 NoveltyBudget::Always | NoveltyBudget::WithinBudget => 1.0,
             };
@@ -598,8 +598,8 @@ pub(super) fn make_batch(
                     _ => shaped,
                 }
             };
-            let scale = cfg.reward_scale as f32;
-            if cfg.novelty_critic {
+            let scale = cfg.targets.reward_scale as f32;
+            if cfg.novelty.novelty_critic {
                 let paid = match over_budget {
                     Some(o) if budget_spent && (o.replaced_reward.is_some() || !o.pays_novelty) => {
                         0.0
@@ -662,7 +662,7 @@ pub(super) fn make_batch(
             .view([bi, 2])
             .to_device(device),
         goal_known: f(&goal_known),
-        novelty_rewards: cfg.novelty_critic.then(|| f(&novelty_rew)),
+        novelty_rewards: cfg.novelty.novelty_critic.then(|| f(&novelty_rew)),
     }
 }
 
@@ -693,7 +693,7 @@ fn td_masks(
     next_in_window: bool,
 ) -> (bool, bool, bool) {
     let last_of_trajectory = step + 1 == t.len();
-    let (has_target, bootstraps) = if cfg.bootstrap_across_episodes {
+    let (has_target, bootstraps) = if cfg.targets.bootstrap_across_episodes {
         // Meta-RL view: an episode's end (terminated at the goal or
         // truncated at the time limit) leads to the next episode's
         // first state, which is the next token: bootstrap through it.
@@ -733,9 +733,9 @@ impl EppoConfig {
     pub fn over_budget_price(&self, updates_constrained: u64) -> f64 {
         let mut reached = PriceChange {
             after: 0,
-            price: self.over_budget_cost_price,
+            price: self.constraint.over_budget_cost_price,
         };
-        for &next in &self.over_budget_price_schedule {
+        for &next in &self.constraint.over_budget_price_schedule {
             if updates_constrained < next.after {
                 return reached.price;
             }
@@ -751,14 +751,14 @@ impl EppoConfig {
     pub(super) fn shaping(&self, updates: u64, constrained_since: Option<u64>) -> Shaping {
         let Some(since) = constrained_since else {
             return Shaping {
-                novelty: self.novelty_bonus as f32,
+                novelty: self.novelty.novelty_bonus as f32,
                 ..Shaping::default()
             };
         };
         let cost_price = self.over_budget_price(updates.saturating_sub(since)) as f32;
         Shaping {
-            novelty: self.novelty_bonus as f32,
-            budget: match self.penalty {
+            novelty: self.novelty.novelty_bonus as f32,
+            budget: match self.constraint.penalty {
                 PenaltyForm::Saute => BudgetInTargets::OverBudget(OverBudget {
                     replaced_reward: Some(SAUTE_UNSAFE_REWARD),
                     cost_price,
@@ -767,10 +767,10 @@ impl EppoConfig {
                 PenaltyForm::Excess => BudgetInTargets::OverBudget(OverBudget {
                     replaced_reward: None,
                     cost_price,
-                    pays_novelty: self.novelty_budget != NoveltyBudget::WithinBudget,
+                    pays_novelty: self.novelty.novelty_budget != NoveltyBudget::WithinBudget,
                 }),
                 PenaltyForm::Terminate => {
-                    BudgetInTargets::EndsValue(self.termination_reward as f32)
+                    BudgetInTargets::EndsValue(self.constraint.termination_reward as f32)
                 }
                 PenaltyForm::Hindsight | PenaltyForm::Hinge => BudgetInTargets::Absent,
             },

@@ -220,8 +220,8 @@ pub fn load_checkpoint(path: &Path, env: EnvName) -> Result<LoadedAgent, EvalCmd
             let pretrain_tasks = crate::eppo::recorded_pretrain_tasks(&ckpt)
                 .map_err(|e| bad(&ckpt, e.to_string()))?;
             let context = ContextLimit {
-                max_episode_steps: cfg.max_episode_steps,
-                max_len: cfg.model.max_len.max(0) as usize,
+                max_episode_steps: cfg.tasks.max_episode_steps,
+                max_len: cfg.model.transformer.max_len.max(0) as usize,
             };
             let loaded = LoadedAgent {
                 method: Method::Eppo,
@@ -231,8 +231,8 @@ pub fn load_checkpoint(path: &Path, env: EnvName) -> Result<LoadedAgent, EvalCmd
                 // do not: then only the seed-range/orientation split applies).
                 pretrain_tasks,
                 budget_range: Some(BudgetRange {
-                    low: cfg.ctg_min,
-                    high: cfg.ctg_max,
+                    low: cfg.tasks.ctg_min,
+                    high: cfg.tasks.ctg_max,
                 }),
                 // EppoAgent keeps its VarStore private: no checksum handle.
                 parameters: Vec::new(),
@@ -243,7 +243,10 @@ pub fn load_checkpoint(path: &Path, env: EnvName) -> Result<LoadedAgent, EvalCmd
                 label: None,
                 note: format!(
                     "EPPO checkpoint after {} updates (run planned {}), K_max {}, context {} steps",
-                    manifest.updates, cfg.total_updates, cfg.k_max, cfg.model.max_len
+                    manifest.updates,
+                    cfg.optimisation.total_updates,
+                    cfg.tasks.k_max,
+                    cfg.model.transformer.max_len
                 ),
             };
             Ok(loaded)
@@ -296,7 +299,7 @@ mod tests {
     use super::*;
     use crate::ad::{AdConfig, TrainRequest};
     use crate::data::dataset::{DatasetConfig, Source, generate};
-    use crate::eppo::{EppoConfig, PretrainOptions};
+    use crate::eppo::PretrainOptions;
     use crate::eval::command::{EvalOptions, run};
     use std::path::PathBuf;
 
@@ -360,13 +363,11 @@ mod tests {
         let root =
             std::env::temp_dir().join(format!("icrl-eval-load-macro-{}", std::process::id()));
         // A tiny EPPO run on Point with a non-default macro action.
-        let cfg = EppoConfig {
-            n_envs: 2,
-            batch_size: 2,
-            total_updates: 2,
-            physics_steps_per_action: Some(10),
-            ..crate::eppo::tests::tiny()
-        };
+        let mut cfg = crate::eppo::tests::tiny();
+        cfg.tasks.n_envs = 2;
+        cfg.optimisation.batch_size = 2;
+        cfg.optimisation.total_updates = 2;
+        cfg.tasks.physics_steps_per_action = Some(10);
         let trained = crate::eppo::train(&PretrainOptions {
             env: EnvName::Point,
             cfg: cfg.clone(),
@@ -389,9 +390,10 @@ mod tests {
         // Resuming with another macro action is refused, naming both.
         let e = crate::eppo::train(&PretrainOptions {
             env: EnvName::Point,
-            cfg: EppoConfig {
-                physics_steps_per_action: None,
-                ..cfg
+            cfg: {
+                let mut c = cfg;
+                c.tasks.physics_steps_per_action = None;
+                c
             },
             out: root.join("runs"),
             resume: Some(trained.run_dir.clone()),
@@ -429,12 +431,10 @@ mod tests {
     fn eppo_checkpoint_is_evaluated_within_its_context_and_refused_elsewhere() {
         let root = std::env::temp_dir().join(format!("icrl-eval-load-eppo-{}", std::process::id()));
         // One round: 2 trajectories (2 episodes of 6 steps), then 2 updates.
-        let cfg = EppoConfig {
-            n_envs: 2,
-            batch_size: 2,
-            total_updates: 2,
-            ..crate::eppo::tests::tiny()
-        };
+        let mut cfg = crate::eppo::tests::tiny();
+        cfg.tasks.n_envs = 2;
+        cfg.optimisation.batch_size = 2;
+        cfg.optimisation.total_updates = 2;
         let trained = crate::eppo::train(&PretrainOptions {
             env: EnvName::DarkRoom,
             cfg,

@@ -102,12 +102,10 @@ fn relabelled_goals_are_reached_positions_away_from_the_start() {
 #[test]
 fn the_scripted_first_episode_reaches_the_goal_and_relabelled_updates_run() {
     let mut cfg = tiny_point();
-    cfg.scripted_first_episode = true;
-    cfg.relabel_prob = 1.0;
-    let darkroom = EppoConfig {
-        physics_steps_per_action: None,
-        ..cfg.clone()
-    };
+    cfg.goal.scripted_first_episode = true;
+    cfg.goal.relabel_prob = 1.0;
+    let mut darkroom = cfg.clone();
+    darkroom.tasks.physics_steps_per_action = None;
     let e = Learner::new(darkroom, EnvName::DarkRoom).err().unwrap();
     assert!(e.to_string().contains("scripted_first_episode"), "{e}");
     let mut learner = Learner::new(cfg.clone(), EnvName::Point).unwrap();
@@ -127,10 +125,8 @@ fn the_dense_critic_reward_shapes_targets_and_leaves_tokens_sparse() {
     learner.collect(&mut venv).unwrap();
     let trajs: Vec<&Trajectory> = learner.replay.trajectories.iter().collect();
     let sparse_cfg = learner.cfg.clone();
-    let dense_cfg = EppoConfig {
-        dense_reward_coef: 0.5,
-        ..sparse_cfg.clone()
-    };
+    let mut dense_cfg = sparse_cfg.clone();
+    dense_cfg.goal.dense_reward_coef = 0.5;
     let batch = |cfg: &EppoConfig| {
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         unshaped_batch(&trajs, cfg, &learner.spec, &mut rng)
@@ -144,7 +140,7 @@ fn the_dense_critic_reward_shapes_targets_and_leaves_tokens_sparse() {
     let (rs, rd) = (to_vec(&sparse.rewards), to_vec(&dense.rewards));
     let valid = to_vec(&sparse.valid);
     let l = rs.len() / trajs.len();
-    let scale = sparse_cfg.reward_scale as f32;
+    let scale = sparse_cfg.targets.reward_scale as f32;
     let mut shaped = 0;
     for (j, t) in trajs.iter().enumerate() {
         for step in 0..t.len().min(l) {
@@ -171,17 +167,15 @@ fn the_dense_reward_after_the_goal_waits_for_a_success_in_the_context() {
     let mut t = relabel(&two_episode_trajectory(), 2, 1, &GRID_RULE, [4.0, 6.0]);
     t.actions = vec![0.0; t.len() * learner.spec.act_flat()];
     let rewards = |coef: f64, after_goal: bool| {
-        let cfg = EppoConfig {
-            dense_reward_coef: coef,
-            dense_reward_after_goal: after_goal,
-            ..learner.cfg.clone()
-        };
+        let mut cfg = learner.cfg.clone();
+        cfg.goal.dense_reward_coef = coef;
+        cfg.goal.dense_reward_after_goal = after_goal;
         let mut rng = ChaCha8Rng::seed_from_u64(1);
         to_vec(&unshaped_batch(&[&t], &cfg, &learner.spec, &mut rng).rewards)
     };
     let sparse = rewards(0.0, false);
     let shaping = |r: Vec<f32>| -> Vec<f32> {
-        let scale = learner.cfg.reward_scale as f32;
+        let scale = learner.cfg.targets.reward_scale as f32;
         r.iter()
             .zip(&sparse)
             .take(4)
@@ -201,7 +195,7 @@ fn the_dense_reward_after_the_goal_waits_for_a_success_in_the_context() {
     }
     assert!(always[0] != 0.0 && after_goal[3] != 0.0);
     let mut cfg = learner.cfg.clone();
-    cfg.dense_reward_after_goal = true;
+    cfg.goal.dense_reward_after_goal = true;
     let e = cfg.validate().unwrap_err().to_string();
     assert!(e.contains("dense_reward_coef"), "{e}");
 }
@@ -211,12 +205,12 @@ fn the_goal_enters_the_context_with_its_reward() {
     // One fixed task (the ladder's first rung): collect until an episode
     // ends at the goal, then look at the token after it.
     let mut cfg = tiny();
-    cfg.task_pool = 1;
+    cfg.tasks.task_pool = 1;
     let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
     let goal = sample_task(
         &spawn_config(EnvName::DarkRoom),
         Orientation::Centre,
-        pretrain_task_seed(cfg.seed, 0),
+        pretrain_task_seed(cfg.run.seed, 0),
     )
     .unwrap()
     .goal;
@@ -259,16 +253,16 @@ fn the_goal_enters_the_context_with_its_reward() {
 #[test]
 fn exploration_is_bilevel() {
     let mut cfg = tiny();
-    cfg.eps_start = 1.0;
-    cfg.eps_end = 0.4;
-    cfg.eps_last_start = Some(0.6);
-    cfg.eps_last_end = Some(0.0);
-    cfg.eps_decay_steps = 1000;
-    let start = cfg.exploration(0);
+    cfg.exploration.eps_start = 1.0;
+    cfg.exploration.eps_end = 0.4;
+    cfg.exploration.eps_last_start = Some(0.6);
+    cfg.exploration.eps_last_end = Some(0.0);
+    cfg.exploration.eps_decay_steps = 1000;
+    let start = cfg.exploration.schedule(0);
     assert_eq!((start.first, start.last), (1.0, 0.6));
-    let mid = cfg.exploration(500);
+    let mid = cfg.exploration.schedule(500);
     assert!((mid.first - 0.7).abs() < 1e-12 && (mid.last - 0.3).abs() < 1e-12);
-    let end = cfg.exploration(10_000);
+    let end = cfg.exploration.schedule(10_000);
     assert!(
         (end.first - 0.4).abs() < 1e-12 && end.last == 0.0,
         "annealed, then held"
@@ -279,13 +273,13 @@ fn exploration_is_bilevel() {
     assert!(end.at(100, 100, 1.0).abs() < 1e-12);
     assert!((end.at(0, 100, 0.5) - 0.2).abs() < 1e-12);
     // Without the last-step values, epsilon is flat inside a trajectory.
-    cfg.eps_last_start = None;
-    cfg.eps_last_end = None;
-    let flat = cfg.exploration(500);
+    cfg.exploration.eps_last_start = None;
+    cfg.exploration.eps_last_end = None;
+    let flat = cfg.exploration.schedule(500);
     assert_eq!(flat.first, flat.last);
     // An epsilon outside [0, 1] is refused by name.
     assert!(cfg.validate().is_ok());
-    cfg.eps_last_end = Some(1.5);
+    cfg.exploration.eps_last_end = Some(1.5);
     assert!(refused(&cfg, "eps_last_end"));
 }
 
@@ -320,7 +314,7 @@ fn the_novelty_bonus_pays_new_cells_until_the_first_success() {
         to_vec(&shaped.rewards)
             .iter()
             .zip(to_vec(&plain.rewards))
-            .map(|(b, p)| ((b - p) / cfg.reward_scale as f32 * 1000.0).round() / 1000.0)
+            .map(|(b, p)| ((b - p) / cfg.targets.reward_scale as f32 * 1000.0).round() / 1000.0)
             .collect()
     };
     let bonus = batch(&cfg, 0.1);
@@ -339,11 +333,9 @@ fn novelty_critics_take_the_bonus_out_of_the_reward_critics() {
     t.costs[2] = 2.0;
     let spec = grid_spec();
     let one = tiny();
-    let apart = EppoConfig {
-        novelty_critic: true,
-        novelty_bonus: 0.1,
-        ..tiny()
-    };
+    let mut apart = tiny();
+    apart.novelty.novelty_critic = true;
+    apart.novelty.novelty_bonus = 0.1;
     let batch = |cfg: &EppoConfig, over_budget: Option<OverBudget>| {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let shaping = Shaping {
@@ -353,7 +345,7 @@ fn novelty_critics_take_the_bonus_out_of_the_reward_critics() {
         make_batch(&[&t], cfg, &spec, shaping, &mut rng, Device::Cpu)
     };
     assert!(batch(&one, None).novelty_rewards.is_none());
-    let scale = one.reward_scale as f32;
+    let scale = one.targets.reward_scale as f32;
     let priced = |replaced_reward, pays_novelty| {
         Some(OverBudget {
             replaced_reward,
@@ -389,7 +381,7 @@ fn novelty_critics_take_the_bonus_out_of_the_reward_critics() {
         }
     }
     let mut off = apart.clone();
-    off.novelty_bonus = 0.0;
+    off.novelty.novelty_bonus = 0.0;
     assert!(refused(&off, "novelty_critic"));
 }
 
@@ -522,10 +514,8 @@ fn continuous_exploration_noise_widens_the_sampled_actions_within_the_box() {
 /// task's goal, and its checkpoint is refused by evaluation by name.
 #[test]
 fn the_goal_conditioned_rung_sees_the_goal_and_is_never_evaluated() {
-    let cfg = EppoConfig {
-        goal_in_observation: true,
-        ..tiny()
-    };
+    let mut cfg = tiny();
+    cfg.goal.goal_in_observation = true;
     let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
     assert_eq!(learner.spec.obs_dim, 5, "position, goal, shown");
     let mut venv = training_venv(EnvName::DarkRoom, &cfg);
@@ -556,34 +546,26 @@ fn the_goal_conditioned_rung_sees_the_goal_and_is_never_evaluated() {
 /// its slots blank, where one always shown is refused.
 #[test]
 fn hidden_goals_are_blank_throughout_and_such_a_policy_is_evaluated() {
-    let ramp = EppoConfig {
-        goal_in_observation: true,
-        goal_hidden_share: 0.8,
-        goal_hidden_ramp: [100, 300],
-        ..tiny()
-    };
+    let mut ramp = tiny();
+    ramp.goal.goal_in_observation = true;
+    ramp.goal.goal_hidden_share = 0.8;
+    ramp.goal.goal_hidden_ramp = [100, 300];
     let share: Vec<f64> = [0, 100, 200, 300, 1000]
-        .map(|s| ramp.goal_hidden_share_at(s))
+        .map(|s| ramp.goal.goal_hidden_share_at(s))
         .to_vec();
     assert_eq!(share, [0.0, 0.0, 0.4, 0.8, 0.8]);
-    let bad = EppoConfig {
-        goal_in_observation: false,
-        ..ramp.clone()
-    };
+    let mut bad = ramp.clone();
+    bad.goal.goal_in_observation = false;
     assert!(refused(&bad, "goal_in_observation"));
-    let bad = EppoConfig {
-        goal_hidden_ramp: [300, 100],
-        ..ramp.clone()
-    };
+    let mut bad = ramp.clone();
+    bad.goal.goal_hidden_ramp = [300, 100];
     assert!(refused(&bad, "goal_hidden_ramp"));
 
-    let cfg = EppoConfig {
-        goal_hidden_share: 0.5,
-        goal_hidden_ramp: [0, 0],
-        n_envs: 8,
-        batch_size: 8,
-        ..ramp
-    };
+    let mut cfg = ramp;
+    cfg.goal.goal_hidden_share = 0.5;
+    cfg.goal.goal_hidden_ramp = [0, 0];
+    cfg.tasks.n_envs = 8;
+    cfg.optimisation.batch_size = 8;
     let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
     let mut venv = training_venv(EnvName::DarkRoom, &cfg);
     for _ in 0..2 {
@@ -684,33 +666,34 @@ fn hidden_goals_are_blank_throughout_and_such_a_policy_is_evaluated() {
 /// refused by name.
 #[test]
 fn hidden_hazard_maps_are_blank_throughout_and_such_a_policy_is_evaluated() {
-    let cfg = EppoConfig {
-        hazards_in_observation: true,
-        hazard_hidden_share: 0.5,
-        n_envs: 8,
-        batch_size: 8,
-        ..tiny()
-    };
+    let mut cfg = tiny();
+    cfg.goal.hazards_in_observation = true;
+    cfg.goal.hazard_hidden_share = 0.5;
+    cfg.tasks.n_envs = 8;
+    cfg.optimisation.batch_size = 8;
     let slots = HazardsShown::slots(9);
-    assert_eq!(cfg.shown_slots(EnvName::DarkRoom), slots);
+    assert_eq!(cfg.goal.shown_slots(EnvName::DarkRoom), slots);
     assert!(refused(
-        &EppoConfig {
-            goal_in_observation: true,
-            ..cfg.clone()
+        &{
+            let mut c = cfg.clone();
+            c.goal.goal_in_observation = true;
+            c
         },
         "goal_in_observation"
     ));
     assert!(refused(
-        &EppoConfig {
-            hazards_in_observation: false,
-            ..cfg.clone()
+        &{
+            let mut c = cfg.clone();
+            c.goal.hazards_in_observation = false;
+            c
         },
         "hazards_in_observation"
     ));
     assert!(refused(
-        &EppoConfig {
-            hazard_hidden_ramp: [300, 100],
-            ..cfg.clone()
+        &{
+            let mut c = cfg.clone();
+            c.goal.hazard_hidden_ramp = [300, 100];
+            c
         },
         "hazard_hidden_ramp"
     ));
@@ -744,10 +727,8 @@ fn hidden_hazard_maps_are_blank_throughout_and_such_a_policy_is_evaluated() {
         "{shown} shown, {hidden} hidden of 16"
     );
 
-    let always = EppoConfig {
-        hazard_hidden_share: 0.0,
-        ..cfg.clone()
-    };
+    let mut always = cfg.clone();
+    always.goal.hazard_hidden_share = 0.0;
     let (out, report) = train_darkroom(always, "hazards_shown");
     let err = EppoAgent::load(&report.last_checkpoint, Device::Cpu)
         .err()

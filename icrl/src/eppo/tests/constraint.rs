@@ -20,17 +20,20 @@ fn overspent_walk() -> (Trajectory, NetSpec) {
 /// checks nothing is priced before.
 fn priced_from_update_100(form: PenaltyForm) -> EppoConfig {
     let mut cfg = tiny();
-    cfg.penalty = form;
-    cfg.lambda_lr = 0.0;
-    cfg.lambda_init = 0.0;
-    cfg.lambda_warmup_updates = 100;
+    cfg.constraint.penalty = form;
+    cfg.constraint.lambda_lr = 0.0;
+    cfg.constraint.lambda_init = 0.0;
+    cfg.constraint.lambda_warmup_updates = 100;
     if matches!(form, PenaltyForm::Saute | PenaltyForm::Excess) {
-        cfg.over_budget_cost_price = 2.0;
+        cfg.constraint.over_budget_cost_price = 2.0;
     }
     let count = ConstraintStart::default();
-    assert_eq!(count.started_at(99, cfg.lambda_warmup_updates, None), None);
     assert_eq!(
-        count.started_at(100, cfg.lambda_warmup_updates, None),
+        count.started_at(99, cfg.constraint.lambda_warmup_updates, None),
+        None
+    );
+    assert_eq!(
+        count.started_at(100, cfg.constraint.lambda_warmup_updates, None),
         Some(100)
     );
     assert_eq!(
@@ -89,11 +92,11 @@ fn a_measured_constraint_start_waits_for_the_warmup_and_the_revisit_rate() {
 #[test]
 fn with_goal_slots_the_start_waits_for_the_hidden_trajectories_revisits() {
     let mut cfg = tiny_point();
-    cfg.goal_in_observation = true;
-    cfg.goal_hidden_share = 0.5;
-    cfg.lambda_warmup_updates = 0;
-    cfg.constraint_after_revisit = Some(0.5);
-    cfg.constraint_revisit_rounds = 1;
+    cfg.goal.goal_in_observation = true;
+    cfg.goal.goal_hidden_share = 0.5;
+    cfg.constraint.lambda_warmup_updates = 0;
+    cfg.constraint.constraint_after_revisit = Some(0.5);
+    cfg.constraint.constraint_revisit_rounds = 1;
     cfg.validate().unwrap();
     let mut learner = Learner::new(cfg, EnvName::Point).unwrap();
     let round = |all: f64, hidden: f64| RoundStats {
@@ -116,12 +119,12 @@ fn with_goal_slots_the_start_waits_for_the_hidden_trajectories_revisits() {
 #[test]
 fn the_multiplier_waits_for_the_measured_start_and_the_checkpoint_keeps_it() {
     let mut cfg = tiny();
-    cfg.lambda_init = 0.5;
-    cfg.lambda_lr = 0.1;
-    cfg.lambda_max = 10.0;
-    cfg.lambda_warmup_updates = 0;
-    cfg.constraint_after_revisit = Some(0.5);
-    cfg.constraint_revisit_rounds = 1;
+    cfg.constraint.lambda_init = 0.5;
+    cfg.constraint.lambda_lr = 0.1;
+    cfg.constraint.lambda_max = 10.0;
+    cfg.constraint.lambda_warmup_updates = 0;
+    cfg.constraint.constraint_after_revisit = Some(0.5);
+    cfg.constraint.constraint_revisit_rounds = 1;
     cfg.validate().unwrap();
     let (_, mut venv) = tiny_learner(0);
     let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
@@ -142,7 +145,7 @@ fn the_multiplier_waits_for_the_measured_start_and_the_checkpoint_keeps_it() {
     learner.update().unwrap();
     assert_ne!(learner.multiplier.lambda, 0.5, "moves once on");
     let out = std::env::temp_dir().join(format!("icrl-eppo-start-{}", std::process::id()));
-    let run = crate::checkpoint::RunDir::create(&out, "darkroom", "eppo", cfg.seed).unwrap();
+    let run = crate::checkpoint::RunDir::create(&out, "darkroom", "eppo", cfg.run.seed).unwrap();
     let saved = learner.save_checkpoint(&run).unwrap();
     let resumed = Learner::resume(cfg, EnvName::DarkRoom, &saved).unwrap();
     assert_eq!(resumed.constraint_start, learner.constraint_start);
@@ -161,8 +164,8 @@ fn the_multiplier_waits_for_the_measured_start_and_the_checkpoint_keeps_it() {
         ),
     ] {
         let mut table = crate::presets::preset_table("eppo", "darkroom", "quick").unwrap();
-        crate::presets::apply_overrides(&mut table, &[format!("{key}={value}")]).unwrap();
-        let cfg: EppoConfig = crate::presets::resolve("bad", table).unwrap();
+        EppoConfig::apply_sets(&mut table, &[format!("{key}={value}")]).unwrap();
+        let cfg = EppoConfig::from_table("bad", table).unwrap();
         let err = cfg.validate().unwrap_err().to_string();
         assert!(err.contains(says), "{err}");
     }
@@ -199,7 +202,7 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
         to_vec(&saute.tokens),
         "tokens as collected"
     );
-    let scale = cfg.reward_scale as f32;
+    let scale = cfg.targets.reward_scale as f32;
     let unscaled =
         |b: &Batch| -> Vec<f32> { to_vec(&b.rewards).iter().map(|r| r / scale).collect() };
     assert_eq!(
@@ -218,7 +221,7 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
         vec![0.0, 0.0, -2.25, -4.25, -0.25, 0.0, 0.0, 0.0]
     );
     // Under another penalty form the same settings shape nothing.
-    cfg.penalty = PenaltyForm::Hindsight;
+    cfg.constraint.penalty = PenaltyForm::Hindsight;
     assert_eq!(cfg.shaping(100, Some(100)).over_budget(), None);
     assert_no_actor_penalty(PenaltyForm::Saute);
 }
@@ -226,16 +229,16 @@ fn saute_replaces_the_reward_once_the_episode_has_spent_its_budget() {
 #[test]
 fn saute_refuses_a_multiplier_that_moves() {
     let mut cfg = tiny();
-    cfg.penalty = PenaltyForm::Saute;
-    cfg.lambda_init = 0.0;
-    cfg.lambda_lr = 0.001;
+    cfg.constraint.penalty = PenaltyForm::Saute;
+    cfg.constraint.lambda_init = 0.0;
+    cfg.constraint.lambda_lr = 0.001;
     let err = cfg.validate().unwrap_err().to_string();
     assert!(err.contains("lambda_lr = 0"), "{err}");
-    cfg.lambda_lr = 0.0;
-    cfg.over_budget_cost_price = -1.0;
+    cfg.constraint.lambda_lr = 0.0;
+    cfg.constraint.over_budget_cost_price = -1.0;
     let err = cfg.validate().unwrap_err().to_string();
     assert!(err.contains("over_budget_cost_price"), "{err}");
-    cfg.over_budget_cost_price = 1.0;
+    cfg.constraint.over_budget_cost_price = 1.0;
     cfg.validate().unwrap();
 }
 
@@ -255,7 +258,7 @@ fn excess_price_charges_each_unit_past_the_budget_and_keeps_the_goal() {
     );
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let batch = make_batch(&[&t], &cfg, &spec, shaping, &mut rng, Device::Cpu);
-    let scale = cfg.reward_scale as f32;
+    let scale = cfg.targets.reward_scale as f32;
     let rewards: Vec<f32> = to_vec(&batch.rewards).iter().map(|r| r / scale).collect();
     assert_eq!(
         rewards,
@@ -270,11 +273,11 @@ fn excess_price_charges_each_unit_past_the_budget_and_keeps_the_goal() {
     );
     assert_no_actor_penalty(PenaltyForm::Excess);
     // Refused without a price, or with a multiplier that moves.
-    cfg.over_budget_cost_price = 0.0;
+    cfg.constraint.over_budget_cost_price = 0.0;
     let err = cfg.validate().unwrap_err().to_string();
     assert!(err.contains("over_budget_cost_price > 0"), "{err}");
-    cfg.over_budget_cost_price = 1.0;
-    cfg.lambda_lr = 0.01;
+    cfg.constraint.over_budget_cost_price = 1.0;
+    cfg.constraint.lambda_lr = 0.01;
     let err = cfg.validate().unwrap_err().to_string();
     assert!(
         err.contains("penalty = \"excess\"") && err.contains("lambda_lr = 0"),
@@ -286,7 +289,7 @@ fn excess_price_charges_each_unit_past_the_budget_and_keeps_the_goal() {
 fn termination_ends_the_critics_value_at_the_step_that_overspends() {
     let (t, spec) = overspent_walk();
     let mut cfg = priced_from_update_100(PenaltyForm::Terminate);
-    cfg.termination_reward = -0.5;
+    cfg.constraint.termination_reward = -0.5;
     cfg.validate().unwrap();
     assert_eq!(cfg.shaping(99, None).value_end_reward(), None);
     let shaping = cfg.shaping(100, Some(100));
@@ -298,7 +301,7 @@ fn termination_ends_the_critics_value_at_the_step_that_overspends() {
     };
     let (plain, ended) = (batch(cfg.shaping(99, None)), batch(shaping));
     assert_eq!(to_vec(&plain.tokens), to_vec(&ended.tokens));
-    let scale = cfg.reward_scale as f32;
+    let scale = cfg.targets.reward_scale as f32;
     let unscaled: Vec<f32> = to_vec(&ended.rewards).iter().map(|r| r / scale).collect();
     // Step 2 (episode 0) and step 3 (episode 1) take their episodes past the
     // budget; the goal reached already over budget (step 4) keeps its reward.
@@ -324,22 +327,22 @@ fn termination_ends_the_critics_value_at_the_step_that_overspends() {
         "{reading}"
     );
     // The multiplier must stay at 0.
-    cfg.lambda_lr = 0.01;
+    cfg.constraint.lambda_lr = 0.01;
     let err = cfg.validate().unwrap_err().to_string();
     assert!(
         err.contains("penalty = \"terminate\"") && err.contains("lambda_lr = 0"),
         "{err}"
     );
-    cfg.lambda_lr = 0.0;
-    cfg.termination_reward = 0.5;
+    cfg.constraint.lambda_lr = 0.0;
+    cfg.constraint.termination_reward = 0.5;
     let err = cfg.validate().unwrap_err().to_string();
     assert!(err.contains("termination_reward"), "{err}");
-    cfg.termination_reward = -0.5;
-    cfg.over_budget_cost_price = 1.0;
+    cfg.constraint.termination_reward = -0.5;
+    cfg.constraint.over_budget_cost_price = 1.0;
     let err = cfg.validate().unwrap_err().to_string();
     assert!(err.contains("over_budget_cost_price = 1"), "{err}");
-    cfg.over_budget_cost_price = 0.0;
-    cfg.penalty = PenaltyForm::Hinge;
+    cfg.constraint.over_budget_cost_price = 0.0;
+    cfg.constraint.penalty = PenaltyForm::Hinge;
     let err = cfg.validate().unwrap_err().to_string();
     assert!(err.contains("termination_reward = -0.5"), "{err}");
 }
@@ -351,11 +354,11 @@ fn the_price_schedule_counts_updates_from_the_constraints_start() {
     let mut table = crate::presets::preset_table("eppo", "darkroom", "quick").unwrap();
     let schedule =
         "over_budget_price_schedule=[{ after = 50, price = 3.0 }, { after = 80, price = 5 }]";
-    crate::presets::apply_overrides(&mut table, &[schedule.to_string()]).unwrap();
-    let parsed: EppoConfig = crate::presets::resolve("schedule", table).unwrap();
-    cfg.over_budget_price_schedule = parsed.over_budget_price_schedule;
+    EppoConfig::apply_sets(&mut table, &[schedule.to_string()]).unwrap();
+    let parsed = EppoConfig::from_table("schedule", table).unwrap();
+    cfg.constraint.over_budget_price_schedule = parsed.constraint.over_budget_price_schedule;
     assert_eq!(
-        cfg.over_budget_price_schedule,
+        cfg.constraint.over_budget_price_schedule,
         vec![
             PriceChange {
                 after: 50,
@@ -401,13 +404,13 @@ fn the_price_schedule_counts_updates_from_the_constraints_start() {
         &mut rng,
         Device::Cpu,
     );
-    let scale = cfg.reward_scale as f32;
+    let scale = cfg.targets.reward_scale as f32;
     let rewards: Vec<f32> = to_vec(&batch.rewards).iter().map(|r| r / scale).collect();
     assert_eq!(rewards, vec![0.0, 0.0, -5.0, -10.0, 1.0, 0.0, 0.0, 0.0]);
     // The learner reads it from its measured start and reports it.
-    cfg.constraint_after_revisit = Some(0.5);
-    cfg.constraint_revisit_rounds = 1;
-    cfg.lambda_warmup_updates = 0;
+    cfg.constraint.constraint_after_revisit = Some(0.5);
+    cfg.constraint.constraint_revisit_rounds = 1;
+    cfg.constraint.lambda_warmup_updates = 0;
     let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
     assert_eq!(
         learner.over_budget_price(),
@@ -433,17 +436,17 @@ fn the_price_schedule_counts_updates_from_the_constraints_start() {
         assert!(err.contains(says), "{err}");
     };
     refused(
-        &|c| c.over_budget_price_schedule.reverse(),
+        &|c| c.constraint.over_budget_price_schedule.reverse(),
         "must rise from one change to the next",
     );
     refused(
-        &|c| c.over_budget_price_schedule[1].price = f64::NAN,
+        &|c| c.constraint.over_budget_price_schedule[1].price = f64::NAN,
         "price = NaN after 80 updates",
     );
     refused(
         &|c| {
-            c.penalty = PenaltyForm::Hinge;
-            c.over_budget_cost_price = 0.0;
+            c.constraint.penalty = PenaltyForm::Hinge;
+            c.constraint.over_budget_cost_price = 0.0;
         },
         "over_budget_price_schedule changes the price",
     );
@@ -452,7 +455,7 @@ fn the_price_schedule_counts_updates_from_the_constraints_start() {
 #[test]
 fn the_price_schedule_steps_at_each_change() {
     let mut cfg = priced_from_update_100(PenaltyForm::Excess);
-    cfg.over_budget_price_schedule = vec![
+    cfg.constraint.over_budget_price_schedule = vec![
         PriceChange {
             after: 50,
             price: 3.0,
@@ -480,7 +483,7 @@ fn the_price_schedule_steps_at_each_change() {
         assert_eq!(got, price as f32, "{updates}");
     }
     // A change at the start itself applies from the start.
-    cfg.over_budget_price_schedule[0].after = 0;
+    cfg.constraint.over_budget_price_schedule[0].after = 0;
     assert_eq!(cfg.over_budget_price(0), 3.0);
 }
 
@@ -489,18 +492,18 @@ fn novelty_within_budget_withholds_the_bonus_only_past_the_budget() {
     let (t, spec) = overspent_walk();
     let rewards_at = |updates: u64, within: bool| {
         let mut cfg = priced_from_update_100(PenaltyForm::Excess);
-        cfg.novelty_bonus = 0.1;
+        cfg.novelty.novelty_bonus = 0.1;
         if within {
-            cfg.novelty_budget = NoveltyBudget::WithinBudget;
+            cfg.novelty.novelty_budget = NoveltyBudget::WithinBudget;
         }
         cfg.validate().unwrap();
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let shaping = cfg.shaping(
             updates,
-            (updates >= cfg.lambda_warmup_updates).then_some(100),
+            (updates >= cfg.constraint.lambda_warmup_updates).then_some(100),
         );
         let batch = make_batch(&[&t], &cfg, &spec, shaping, &mut rng, Device::Cpu);
-        let scale = cfg.reward_scale as f32;
+        let scale = cfg.targets.reward_scale as f32;
         to_vec(&batch.rewards)
             .iter()
             .map(|r| (r / scale * 100.0).round() / 100.0)
@@ -523,13 +526,13 @@ fn novelty_within_budget_withholds_the_bonus_only_past_the_budget() {
     );
     // Refused where it would do nothing.
     let mut cfg = priced_from_update_100(PenaltyForm::Excess);
-    cfg.novelty_budget = NoveltyBudget::WithinBudget;
-    cfg.novelty_bonus = 0.0;
+    cfg.novelty.novelty_budget = NoveltyBudget::WithinBudget;
+    cfg.novelty.novelty_bonus = 0.0;
     let err = cfg.validate().unwrap_err().to_string();
     assert!(err.contains("novelty_budget"), "{err}");
-    cfg.novelty_bonus = 0.1;
-    cfg.penalty = PenaltyForm::Hindsight;
-    cfg.over_budget_cost_price = 0.0;
+    cfg.novelty.novelty_bonus = 0.1;
+    cfg.constraint.penalty = PenaltyForm::Hindsight;
+    cfg.constraint.over_budget_cost_price = 0.0;
     let err = cfg.validate().unwrap_err().to_string();
     assert!(err.contains("penalty = \"excess\""), "{err}");
 }
@@ -543,8 +546,8 @@ fn novelty_by_remaining_share_scales_the_bonus_by_the_budget_left() {
     t.ctg = vec![2.0, 2.0, 1.0, 2.0, 0.0, 2.0, 2.0, 2.0];
     let rewards_at = |t: &Trajectory, updates: u64, form: NoveltyBudget| {
         let mut cfg = priced_from_update_100(PenaltyForm::Excess);
-        cfg.novelty_bonus = 0.1;
-        cfg.novelty_budget = form;
+        cfg.novelty.novelty_bonus = 0.1;
+        cfg.novelty.novelty_budget = form;
         cfg.validate().unwrap();
         let mut rng = ChaCha8Rng::seed_from_u64(0);
         let batch = make_batch(
@@ -553,12 +556,12 @@ fn novelty_by_remaining_share_scales_the_bonus_by_the_budget_left() {
             &spec,
             cfg.shaping(
                 updates,
-                (updates >= cfg.lambda_warmup_updates).then_some(100),
+                (updates >= cfg.constraint.lambda_warmup_updates).then_some(100),
             ),
             &mut rng,
             Device::Cpu,
         );
-        let scale = cfg.reward_scale as f32;
+        let scale = cfg.targets.reward_scale as f32;
         to_vec(&batch.rewards)
             .iter()
             .map(|r| (r / scale * 1000.0).round() / 1000.0)
@@ -586,7 +589,7 @@ fn novelty_by_remaining_share_scales_the_bonus_by_the_budget_left() {
         vec![0.1, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]
     );
     let mut cfg = priced_from_update_100(PenaltyForm::Hindsight);
-    cfg.novelty_budget = NoveltyBudget::RemainingShare;
+    cfg.novelty.novelty_budget = NoveltyBudget::RemainingShare;
     let err = cfg.validate().unwrap_err().to_string();
     assert!(err.contains("novelty_bonus > 0"), "{err}");
 }
@@ -598,6 +601,7 @@ fn an_older_novelty_within_budget_flag_reads_as_the_gate() {
     let read = |line: &str| {
         toml::from_str::<EppoConfig>(&text.replace("novelty_budget = \"always\"", line))
             .unwrap()
+            .novelty
             .novelty_budget
     };
     assert_eq!(
@@ -651,7 +655,7 @@ fn lambda_rises_falls_and_respects_the_cap() {
 /// cost penalty in `form`.
 fn penalty_probe(form: PenaltyForm) -> (Learner, Batch) {
     let (mut learner, mut venv) = tiny_learner(2);
-    learner.cfg.penalty = form;
+    learner.cfg.constraint.penalty = form;
     learner.collect(&mut venv).unwrap();
     let batch = replay_batch(&learner);
     (learner, batch)
@@ -665,7 +669,7 @@ fn policy_loss_at(learner: &Learner, batch: &Batch, lambda: f64) -> f64 {
             &learner.target,
             batch,
             lambda,
-            learner.cfg.entropy_coef,
+            learner.cfg.exploration.entropy_coef,
             &learner.cfg,
         )
     })
@@ -749,11 +753,12 @@ fn configs_from_before_the_retirement_load_or_are_refused_by_name() {
     let pe1 = table("eppo_point_ladder/pe1_scratch_eq7_gate0.7/config.toml");
     assert!(pe1.contains_key("lambda_kp") && pe1.contains_key("violation_signal"));
     let loaded = EppoConfig::from_table("pe1", pe1.clone()).unwrap();
-    assert_eq!(loaded.lambda_max, 1.0);
+    assert_eq!(loaded.constraint.lambda_max, 1.0);
     let mut stripped = pe1.clone();
     for (key, _, _) in RETIRED {
         stripped.remove(key);
     }
+    EppoConfig::migrate(&mut stripped).unwrap();
     let plain: EppoConfig = crate::presets::resolve("pe1", stripped).unwrap();
     assert_eq!(
         format!("{loaded:?}"),
@@ -770,10 +775,21 @@ fn configs_from_before_the_retirement_load_or_are_refused_by_name() {
         ("repeat_cost_radius", "0.4"),
     ] {
         let mut used = pe1.clone();
-        crate::presets::apply_overrides(&mut used, &[format!("{key}={value}")]).unwrap();
+        EppoConfig::apply_sets(&mut used, &[format!("{key}={value}")]).unwrap();
         let err = EppoConfig::from_table("pe1", used).unwrap_err().to_string();
         let (_, _, commit) = RETIRED.iter().find(|(k, _, _)| *k == key).unwrap();
         assert!(err.contains(key) && err.contains(commit), "{err}");
+    }
+    // In a section as at the top: dropped where inert, refused by name where not.
+    for (value, refused) in [("0.0", false), ("0.5", true)] {
+        let mut sectioned = pe1.clone();
+        sectioned.remove("lambda_kp");
+        EppoConfig::apply_sets(&mut sectioned, &[format!("constraint.lambda_kp={value}")]).unwrap();
+        let got = EppoConfig::from_table("pe1", sectioned);
+        assert_eq!(got.is_err(), refused, "{got:?}");
+        if let Err(e) = got {
+            assert!(e.to_string().contains("lambda_kp = 0.5"), "{e}");
+        }
     }
     let late = table("eppo_darkroom_budget/lr1_late_rate/config.toml");
     let err = EppoConfig::from_table("lr1", late).unwrap_err().to_string();
@@ -801,7 +817,7 @@ fn configs_from_before_the_retirement_load_or_are_refused_by_name() {
         else {
             continue;
         };
-        if !t.contains_key("n_critics") {
+        if EppoConfig::setting(&t, "n_critics").is_none() {
             continue; // not an EPPO config
         }
         match EppoConfig::from_table("c", t.clone()) {
@@ -849,22 +865,22 @@ fn each_per_episode_multiplier_moves_on_its_own_episode_only() {
     assert_eq!(per_step, vec![1.0, 1.0, 0.0, k2, 0.0, 1.0]);
 
     let mut cfg = tiny();
-    cfg.per_episode_multipliers = true;
-    cfg.lambda_lr = 0.1;
-    cfg.lambda_max = 10.0;
-    cfg.lambda_warmup_updates = 0;
+    cfg.constraint.per_episode_multipliers = true;
+    cfg.constraint.lambda_lr = 0.1;
+    cfg.constraint.lambda_max = 10.0;
+    cfg.constraint.lambda_warmup_updates = 0;
     cfg.validate().unwrap();
     let mut wrong = cfg.clone();
-    wrong.penalty = PenaltyForm::Hinge;
+    wrong.constraint.penalty = PenaltyForm::Hinge;
     assert!(refused(&wrong, "per_episode_multipliers"));
     // A learner takes one step per episode index and keeps them.
     let (_, mut venv) = tiny_learner(0);
     let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
-    assert_eq!(learner.multiplier.per_episode, vec![0.0; cfg.k_max]);
+    assert_eq!(learner.multiplier.per_episode, vec![0.0; cfg.tasks.k_max]);
     learner.collect(&mut venv).unwrap();
     learner.update().unwrap();
     let out = std::env::temp_dir().join(format!("icrl-eppo-per-episode-{}", std::process::id()));
-    let run = crate::checkpoint::RunDir::create(&out, "darkroom", "eppo", cfg.seed).unwrap();
+    let run = crate::checkpoint::RunDir::create(&out, "darkroom", "eppo", cfg.run.seed).unwrap();
     let saved = learner.save_checkpoint(&run).unwrap();
     let resumed = Learner::resume(cfg, EnvName::DarkRoom, &saved).unwrap();
     assert_eq!(resumed.multiplier, learner.multiplier);

@@ -16,7 +16,7 @@ fn critic_losses_fall_on_a_fixed_batch() {
             &learner.target,
             &batch,
             0.0,
-            learner.cfg.entropy_coef,
+            learner.cfg.exploration.entropy_coef,
             &learner.cfg,
         )
         .unwrap();
@@ -39,10 +39,8 @@ fn critic_losses_fall_on_a_fixed_batch() {
 #[test]
 fn goal_recall_counts_only_steps_after_a_success_and_falls() {
     assert!(tiny_learner(0).0.net.goal_recall.is_none());
-    let cfg = EppoConfig {
-        goal_recall_coef: 1.0,
-        ..tiny()
-    };
+    let mut cfg = tiny();
+    cfg.goal.goal_recall_coef = 1.0;
     let mut learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
     let mut t = two_episode_trajectory();
     t.goal = [5.0, 5.0];
@@ -99,7 +97,7 @@ fn the_target_forward_beside_the_online_one_computes_the_same_losses() {
                 &learner.target,
                 &batch,
                 0.5,
-                learner.cfg.entropy_coef,
+                learner.cfg.exploration.entropy_coef,
                 &learner.cfg,
             )
             .unwrap()
@@ -125,12 +123,10 @@ fn the_target_forward_beside_the_online_one_computes_the_same_losses() {
 #[test]
 fn the_actor_weighs_the_novelty_critics_only_before_a_success() {
     assert!(tiny_learner(0).0.net.novelty_critic.is_none());
-    let mut cfg = EppoConfig {
-        novelty_critic: true,
-        novelty_bonus: 0.1,
-        ..tiny()
-    };
-    cfg.model.embd_dropout = 0.0;
+    let mut cfg = tiny();
+    cfg.novelty.novelty_critic = true;
+    cfg.novelty.novelty_bonus = 0.1;
+    cfg.model.transformer.embd_dropout = 0.0;
     let shaping = Shaping {
         novelty: 0.1,
         budget: BudgetInTargets::Absent,
@@ -175,7 +171,7 @@ fn the_actor_weighs_the_novelty_critics_only_before_a_success() {
     for (net, target, vs, mut batch) in cases {
         let run = |batch: &Batch| {
             let (lv, _, lp, ..) = crate::torch_rng::seeded(7, || {
-                losses(net, target, batch, 0.0, cfg.entropy_coef, &cfg).unwrap()
+                losses(net, target, batch, 0.0, cfg.exploration.entropy_coef, &cfg).unwrap()
             });
             (lv.double_value(&[]), lp.double_value(&[]))
         };
@@ -212,12 +208,12 @@ fn the_entropy_weight_tracks_its_target() {
     assert!(tuned_entropy_coef(0.1, -3.0, -2.0, 0.01) > 0.1);
     assert!(tuned_entropy_coef(0.1, -1.0, -2.0, 0.01) < 0.1);
     assert!((tuned_entropy_coef(0.1, -2.0, -2.0, 0.01) - 0.1).abs() < 1e-12);
-    let start = tiny().entropy_coef;
+    let start = tiny().exploration.entropy_coef;
     // Five discrete actions hold at most ln 5 = 1.61 nats and at least 0.
     let after_updates = |target: Option<f64>| {
         let (mut learner, mut venv) = tiny_learner(3);
-        learner.cfg.target_entropy = target;
-        learner.cfg.entropy_coef_lr = 0.1;
+        learner.cfg.exploration.target_entropy = target;
+        learner.cfg.exploration.entropy_coef_lr = 0.1;
         learner.collect(&mut venv).unwrap();
         for _ in 0..3 {
             learner.update().unwrap();
@@ -235,8 +231,8 @@ fn the_entropy_weight_tracks_its_target() {
     assert_eq!(after_updates(None), start, "no target: fixed");
 
     let mut cfg = tiny();
-    cfg.target_entropy = Some(5.0);
-    cfg.entropy_coef_lr = 0.1;
+    cfg.exploration.target_entropy = Some(5.0);
+    cfg.exploration.entropy_coef_lr = 0.1;
     let (out, report) = train_darkroom(cfg.clone(), "alpha");
     let lines = std::fs::read_to_string(report.run_dir.join("metrics.jsonl")).unwrap();
     let last: serde_json::Value = serde_json::from_str(lines.lines().last().unwrap()).unwrap();
@@ -280,7 +276,7 @@ fn terminated_and_truncated_reach_the_targets_apart() {
     };
     let mut rng = ChaCha8Rng::seed_from_u64(0);
     let mut across = cfg.clone();
-    across.bootstrap_across_episodes = true;
+    across.targets.bootstrap_across_episodes = true;
     let b = unshaped_batch(&[&t], &across, &spec, &mut rng);
     assert_eq!(to_vec(&b.bootstrap), vec![1.0, 1.0, 1.0, 0.0]);
     // The cost's target stops at every episode end: episode 0's costs
@@ -294,7 +290,7 @@ fn terminated_and_truncated_reach_the_targets_apart() {
     );
     assert_eq!(to_vec(&b.ctg), t.ctg, "CTG_t as recorded, unscaled");
     let mut within = cfg;
-    within.bootstrap_across_episodes = false;
+    within.targets.bootstrap_across_episodes = false;
     let b = unshaped_batch(&[&t], &within, &spec, &mut rng);
     // Truncated: no target (its final state is not a token); terminated: r alone.
     assert_eq!(to_vec(&b.td_valid), vec![1.0, 0.0, 1.0, 1.0]);
@@ -321,7 +317,7 @@ fn terminated_and_truncated_reach_the_targets_apart() {
 #[test]
 fn continuous_shapes_and_gradients() {
     let mut cfg = tiny();
-    cfg.model.positions = Positions::Learned;
+    cfg.model.transformer.positions = Positions::Learned;
     let spec = NetSpec {
         obs_dim: 3,
         obs_low: vec![f32::NEG_INFINITY; 3],
@@ -357,7 +353,15 @@ fn continuous_shapes_and_gradients() {
     let batch = unshaped_batch(&[&t, &t], &cfg, &spec, &mut rng);
     assert_eq!(batch.tokens.size(), vec![2, 5, 3 + 3 + 2 + 4]);
     assert_eq!(batch.actions.size(), vec![2, 5, 2]);
-    let (lv, lc, lp, ..) = losses(&net, &target, &batch, 1.0, cfg.entropy_coef, &cfg).unwrap();
+    let (lv, lc, lp, ..) = losses(
+        &net,
+        &target,
+        &batch,
+        1.0,
+        cfg.exploration.entropy_coef,
+        &cfg,
+    )
+    .unwrap();
     let mut opt = Adam::new(
         &vs,
         AdamConfig {
@@ -385,7 +389,15 @@ fn continuous_shapes_and_gradients() {
         grad_sum("enc_1.weight") > 0.0,
         "shared: Lp reaches the encoder"
     );
-    let (lv2, lc2, lp2, ..) = losses(&net, &target, &batch, 1.0, cfg.entropy_coef, &cfg).unwrap();
+    let (lv2, lc2, lp2, ..) = losses(
+        &net,
+        &target,
+        &batch,
+        1.0,
+        cfg.exploration.entropy_coef,
+        &cfg,
+    )
+    .unwrap();
     assert!(opt.backward_step(&(lv2 + lc2 + lp2)) > 0.0);
     assert!(lv.double_value(&[]).is_finite() && lc.double_value(&[]).is_finite());
     // Acting: actions land inside the box.

@@ -28,6 +28,7 @@ mod collect;
 mod constraint;
 mod losses;
 mod run;
+mod sections;
 
 /// A tiny configuration: trajectories of 2 episodes of 6 steps (also
 /// used by the evaluation tests).
@@ -56,13 +57,13 @@ pub(crate) fn tiny() -> EppoConfig {
         "learner_threads=0",
     ]
     .map(String::from);
-    crate::presets::apply_overrides(&mut table, &sets).unwrap();
-    crate::presets::resolve("tiny", table).unwrap()
+    EppoConfig::apply_sets(&mut table, &sets).unwrap();
+    EppoConfig::from_table("tiny", table).unwrap()
 }
 
 fn tiny_learner(seed: u64) -> (Learner, VecEnv) {
     let mut cfg = tiny();
-    cfg.seed = seed;
+    cfg.run.seed = seed;
     let learner = Learner::new(cfg.clone(), EnvName::DarkRoom).unwrap();
     (learner, training_venv(EnvName::DarkRoom, &cfg))
 }
@@ -71,17 +72,17 @@ fn tiny_learner(seed: u64) -> (Learner, VecEnv) {
 /// actions of 50 physics steps.
 fn tiny_point() -> EppoConfig {
     let mut cfg = tiny();
-    cfg.max_episode_steps = 75;
-    cfg.model.max_len = 150;
-    cfg.n_envs = 2;
-    cfg.batch_size = 2;
-    cfg.physics_steps_per_action = Some(50);
+    cfg.tasks.max_episode_steps = 75;
+    cfg.model.transformer.max_len = 150;
+    cfg.tasks.n_envs = 2;
+    cfg.optimisation.batch_size = 2;
+    cfg.tasks.physics_steps_per_action = Some(50);
     cfg
 }
 
-/// `cfg.n_envs` training environments of `env`, stepped on one thread.
+/// `cfg.tasks.n_envs` training environments of `env`, stepped on one thread.
 fn training_venv(env: EnvName, cfg: &EppoConfig) -> VecEnv {
-    let envs = (0..cfg.n_envs)
+    let envs = (0..cfg.tasks.n_envs)
         .map(|_| make_training_env(env, cfg).unwrap())
         .collect();
     VecEnv::new(envs, 1, true).unwrap()

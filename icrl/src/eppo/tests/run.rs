@@ -19,10 +19,11 @@ fn a_resumed_learner_samples_the_saved_replay_and_updates_as_the_uninterrupted_o
             env.as_str(),
             std::process::id()
         ));
-        let run = crate::checkpoint::RunDir::create(&out, env.as_str(), "eppo", cfg.seed).unwrap();
+        let run =
+            crate::checkpoint::RunDir::create(&out, env.as_str(), "eppo", cfg.run.seed).unwrap();
         let saved = learner.save_checkpoint(&run).unwrap();
         let mut resumed = Learner::resume(cfg.clone(), env, &saved).unwrap();
-        assert_eq!(resumed.replay.len(), 2 * cfg.n_envs, "{env:?}");
+        assert_eq!(resumed.replay.len(), 2 * cfg.tasks.n_envs, "{env:?}");
         assert_eq!(resumed.replay.steps(), learner.replay.steps());
         assert!(
             resumed
@@ -60,11 +61,11 @@ fn a_resumed_learner_samples_the_saved_replay_and_updates_as_the_uninterrupted_o
 #[test]
 fn a_checkpoint_without_its_dropped_replay_resumes_with_the_same_weights() {
     let cfg = tiny();
-    let (mut learner, mut venv) = tiny_learner(cfg.seed);
+    let (mut learner, mut venv) = tiny_learner(cfg.run.seed);
     learner.collect(&mut venv).unwrap();
     learner.update().unwrap();
     let out = std::env::temp_dir().join(format!("icrl-eppo-drop-{}", std::process::id()));
-    let run = crate::checkpoint::RunDir::create(&out, "darkroom", "eppo", cfg.seed).unwrap();
+    let run = crate::checkpoint::RunDir::create(&out, "darkroom", "eppo", cfg.run.seed).unwrap();
     let saved = learner.save_checkpoint(&run).unwrap();
     let dropped = drop_replay(&run.path).unwrap();
     assert_eq!(dropped.len(), 1);
@@ -190,7 +191,7 @@ fn pretrain_end_to_end_checkpoints_resumes_and_loads() {
     }
     // Resume to 6 updates from the run folder.
     let mut cfg = tiny();
-    cfg.total_updates = 6;
+    cfg.optimisation.total_updates = 6;
     let resumed = train(&PretrainOptions {
         cfg,
         resume: Some(report.run_dir.clone()),
@@ -204,7 +205,7 @@ fn pretrain_end_to_end_checkpoints_resumes_and_loads() {
     assert!(resumed.env_steps > report.env_steps);
     // An incompatible config is refused with the manifest named.
     let mut other = tiny();
-    other.model.n_layers = 2;
+    other.model.transformer.n_layers = 2;
     let err = train(&PretrainOptions {
         cfg: other,
         resume: Some(report.run_dir.clone()),
@@ -266,11 +267,9 @@ fn pretrain_end_to_end_checkpoints_resumes_and_loads() {
 #[test]
 fn a_run_with_novelty_critics_checkpoints_and_loads_them() {
     let out = std::env::temp_dir().join(format!("icrl-eppo-novelty-{}", std::process::id()));
-    let cfg = EppoConfig {
-        novelty_critic: true,
-        novelty_bonus: 0.1,
-        ..tiny()
-    };
+    let mut cfg = tiny();
+    cfg.novelty.novelty_critic = true;
+    cfg.novelty.novelty_bonus = 0.1;
     let opts = PretrainOptions {
         env: EnvName::DarkRoom,
         cfg: cfg.clone(),
@@ -286,11 +285,12 @@ fn a_run_with_novelty_critics_checkpoints_and_loads_them() {
     let manifest = std::fs::read_to_string(ckpt.join("manifest.json")).unwrap();
     assert!(manifest.contains("novelty_critic"), "{manifest}");
     let agent = EppoAgent::load(&ckpt, Device::Cpu).unwrap();
-    assert!(agent.config().novelty_critic);
+    assert!(agent.config().novelty.novelty_critic);
     let err = train(&PretrainOptions {
-        cfg: EppoConfig {
-            total_updates: 6,
-            ..tiny()
+        cfg: {
+            let mut c = tiny();
+            c.optimisation.total_updates = 6;
+            c
         },
         resume: Some(report.run_dir.clone()),
         ..opts
@@ -306,9 +306,9 @@ fn a_run_with_novelty_critics_checkpoints_and_loads_them() {
 /// machine's speed (rates, phase times, CPU shares).
 fn overlapped_run(seed: u64, out: &std::path::Path) -> (Vec<serde_json::Value>, Vec<u8>) {
     let mut cfg = tiny();
-    cfg.seed = seed;
-    cfg.overlap = true;
-    cfg.total_updates = 8;
+    cfg.run.seed = seed;
+    cfg.run.overlap = true;
+    cfg.optimisation.total_updates = 8;
     let report = train(&PretrainOptions {
         env: EnvName::DarkRoom,
         cfg,
@@ -355,9 +355,9 @@ fn the_overlapped_loop_is_deterministic_and_keeps_the_replay_ratio() {
 #[test]
 fn the_replay_ratio_sets_updates_per_environment_step() {
     let (mut learner, mut venv) = tiny_learner(0);
-    learner.cfg.replay_ratio = Some(0.1);
-    learner.cfg.total_updates = 1000;
-    learner.cfg.learning_starts = 5;
+    learner.cfg.optimisation.replay_ratio = Some(0.1);
+    learner.cfg.optimisation.total_updates = 1000;
+    learner.cfg.optimisation.learning_starts = 5;
     for _ in 0..3 {
         learner.collect(&mut venv).unwrap();
         let owed = learner.updates_owed();
@@ -372,18 +372,18 @@ fn the_replay_ratio_sets_updates_per_environment_step() {
         (0.1 * (learner.env_steps - 5) as f64).floor() as u64
     );
     // Without it: updates_per_round, none before learning_starts, none past the end.
-    learner.cfg.replay_ratio = None;
+    learner.cfg.optimisation.replay_ratio = None;
     assert_eq!(learner.updates_owed(), 2);
-    learner.cfg.learning_starts = learner.env_steps + 1;
+    learner.cfg.optimisation.learning_starts = learner.env_steps + 1;
     assert_eq!(learner.updates_owed(), 0);
-    learner.cfg.learning_starts = 0;
-    learner.cfg.total_updates = learner.updates + 1;
+    learner.cfg.optimisation.learning_starts = 0;
+    learner.cfg.optimisation.total_updates = learner.updates + 1;
     assert_eq!(learner.updates_owed(), 1);
     let mut bad = tiny();
-    bad.replay_ratio = Some(0.0);
+    bad.optimisation.replay_ratio = Some(0.0);
     assert!(refused(&bad, "replay_ratio = 0"));
     let mut bad = tiny();
-    bad.learner_threads = -1;
+    bad.run.learner_threads = -1;
     assert!(refused(&bad, "learner_threads = -1"));
 }
 
@@ -394,12 +394,10 @@ fn the_replay_ratio_sets_updates_per_environment_step() {
 fn an_overlapped_stop_checkpoints_and_resumes() {
     tch::set_num_threads(1);
     let out = std::env::temp_dir().join(format!("icrl-eppo-overlap-stop-{}", std::process::id()));
-    let cfg = EppoConfig {
-        overlap: true,
-        total_updates: 6,
-        checkpoint_every: 100,
-        ..tiny()
-    };
+    let mut cfg = tiny();
+    cfg.run.overlap = true;
+    cfg.optimisation.total_updates = 6;
+    cfg.run.checkpoint_every = 100;
     let (done, updates) = stop_after_one_then_resume(&cfg, &out);
     assert_eq!(done, 6);
     assert_eq!(
@@ -417,26 +415,29 @@ fn an_overlapped_stop_checkpoints_and_resumes() {
 /// (10^-300 never owed an update); the presets' values pass.
 #[test]
 fn settings_that_would_hang_a_run_are_refused_with_their_bound() {
-    let longest = tiny().k_max * tiny().max_episode_steps;
+    let longest = tiny().tasks.k_max * tiny().tasks.max_episode_steps;
     let cases = [
         (
-            EppoConfig {
-                n_step: 1_000_000,
-                ..tiny()
+            {
+                let mut c = tiny();
+                c.targets.n_step = 1_000_000;
+                c
             },
             format!("n_step = 1000000: at most k_max * max_episode_steps = {longest}"),
         ),
         (
-            EppoConfig {
-                learning_starts: 1_000_000_000_000,
-                ..tiny()
+            {
+                let mut c = tiny();
+                c.optimisation.learning_starts = 1_000_000_000_000;
+                c
             },
             "learning_starts = 1000000000000: at most replay_capacity = 1000".into(),
         ),
         (
-            EppoConfig {
-                replay_ratio: Some(1e-300),
-                ..tiny()
+            {
+                let mut c = tiny();
+                c.optimisation.replay_ratio = Some(1e-300);
+                c
             },
             "replay_ratio = 1e-300: total_updates = 4 would need".into(),
         ),
@@ -445,18 +446,20 @@ fn settings_that_would_hang_a_run_are_refused_with_their_bound() {
         let err = cfg.validate().unwrap_err().to_string();
         assert!(err.contains(&want), "{want}: {err}");
     }
-    let err = EppoConfig {
-        replay_ratio: Some(1e-300),
-        ..tiny()
+    let err = {
+        let mut c = tiny();
+        c.optimisation.replay_ratio = Some(1e-300);
+        c
     }
     .validate()
     .unwrap_err()
     .to_string();
     assert!(err.contains("raise it to at least"), "{err}");
     assert!(
-        EppoConfig {
-            n_step: longest,
-            ..tiny()
+        {
+            let mut c = tiny();
+            c.targets.n_step = longest;
+            c
         }
         .validate()
         .is_ok()
@@ -464,7 +467,7 @@ fn settings_that_would_hang_a_run_are_refused_with_their_bound() {
     for env in ["darkroom", "point", "car"] {
         for preset in ["quick", "table1"] {
             let table = crate::presets::preset_table("eppo", env, preset).unwrap();
-            let cfg: EppoConfig = crate::presets::resolve(preset, table).unwrap();
+            let cfg = EppoConfig::from_table(preset, table).unwrap();
             cfg.validate().unwrap();
         }
     }
