@@ -15,6 +15,7 @@ use thiserror::Error;
 use safety_envs::{EnvError, EnvName, GoalShown, HazardsShown, spawn_config};
 
 use crate::checkpoint::{CheckpointError, Retention};
+use crate::guard::{Range, check_counts, check_numbers};
 use crate::model::{self, ModelError};
 
 /// Every EPPO hyperparameter (presets in `icrl/presets/eppo-*.toml`), by
@@ -97,6 +98,26 @@ pub struct RunConfig {
     pub keep_every: u64,
 }
 
+impl RunConfig {
+    /// Threads in range, a checkpoint interval, a device libtorch has.
+    pub fn validate(&self) -> Result<(), EppoError> {
+        check_counts(&[
+            ("env_threads", self.env_threads as i128),
+            ("checkpoint_every", i128::from(self.checkpoint_every)),
+        ])
+        .or_else(bad)?;
+        crate::guard::check_torch_threads(self.torch_threads).or_else(bad)?;
+        if !(0..=1024).contains(&self.learner_threads) {
+            return bad(format!(
+                "learner_threads = {}: must be in [0, 1024] (0: torch_threads)",
+                self.learner_threads
+            ));
+        }
+        parse_device(&self.device)?;
+        Ok(())
+    }
+}
+
 /// `[tasks]`: the trajectories collected, each K episodes of one task
 /// under one sampled budget.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -128,6 +149,46 @@ pub struct TasksConfig {
     pub task_pool: u64,
 }
 
+impl TasksConfig {
+    /// Counts of at least 1, 1 <= K_min <= K_max, 0 <= CTG_min <= CTG_max.
+    pub fn validate(&self) -> Result<(), EppoError> {
+        check_counts(&[
+            ("max_episode_steps", self.max_episode_steps as i128),
+            ("k_min", self.k_min as i128),
+            ("k_max", self.k_max as i128),
+            ("n_envs", self.n_envs as i128),
+            (
+                "physics_steps_per_action",
+                self.physics_steps_per_action.map_or(1, |n| n as i128),
+            ),
+        ])
+        .or_else(bad)?;
+        check_numbers(&[
+            ("ctg_min", f64::from(self.ctg_min), Range::NON_NEGATIVE),
+            ("ctg_max", f64::from(self.ctg_max), Range::POSITIVE),
+        ])
+        .or_else(bad)?;
+        if self.k_min == 0 || self.k_min > self.k_max {
+            return bad(format!(
+                "need 1 <= k_min <= k_max, got k_min = {}, k_max = {}",
+                self.k_min, self.k_max
+            ));
+        }
+        if !(self.ctg_min >= 0.0 && self.ctg_min <= self.ctg_max && self.ctg_max > 0.0) {
+            return bad(format!(
+                "need 0 <= ctg_min <= ctg_max, ctg_max > 0; got {} and {}",
+                self.ctg_min, self.ctg_max
+            ));
+        }
+        Ok(())
+    }
+
+    /// The longest trajectory in steps, K_max x t_max.
+    pub fn longest_trajectory(&self) -> usize {
+        self.k_max.saturating_mul(self.max_episode_steps)
+    }
+}
+
 /// `[model]`: the network's shape. The transformer's own settings
 /// ([`model::Config`], Table 1's "Embedding Dim", "Num Layers", "Num
 /// Heads", "Seq Len" and dropouts) sit in the same table as the MLPs
@@ -142,6 +203,19 @@ pub struct ModelConfig {
     pub head_hidden: i64,
     /// Critics per ensemble (reward target: minimum over them; cost target: mean).
     pub n_critics: i64,
+}
+
+impl ModelConfig {
+    /// The transformer's own checks, and widths of at least 1.
+    pub fn validate(&self) -> Result<(), EppoError> {
+        self.transformer.validate()?;
+        check_counts(&[
+            ("encoder_hidden", i128::from(self.encoder_hidden)),
+            ("head_hidden", i128::from(self.head_hidden)),
+            ("n_critics", i128::from(self.n_critics)),
+        ])
+        .or_else(bad)
+    }
 }
 
 impl Serialize for ModelConfig {
@@ -227,6 +301,47 @@ pub struct OptimisationConfig {
     pub replay_ratio: Option<f64>,
 }
 
+impl OptimisationConfig {
+    /// Adam's numbers in range, counts of at least 1, and a replay ratio
+    /// that reaches the last update in a bounded number of environment steps.
+    pub fn validate(&self) -> Result<(), EppoError> {
+        check_counts(&[
+            ("batch_size", self.batch_size as i128),
+            ("total_updates", i128::from(self.total_updates)),
+            ("updates_per_round", i128::from(self.updates_per_round)),
+        ])
+        .or_else(bad)?;
+        check_numbers(&[
+            ("lr", self.lr, Range::UNIT_OPEN_LOW),
+            ("beta1", self.beta1, Range::UNIT_OPEN_HIGH),
+            ("beta2", self.beta2, Range::UNIT_OPEN_HIGH),
+            ("adam_eps", self.adam_eps, Range::UNIT_OPEN_LOW),
+            ("grad_clip", self.grad_clip, Range::POSITIVE),
+            ("critic_weight", self.critic_weight, Range::POSITIVE),
+        ])
+        .or_else(bad)?;
+        let Some(r) = self.replay_ratio else {
+            return Ok(());
+        };
+        if !(r.is_finite() && r > 0.0) {
+            return bad(format!(
+                "replay_ratio = {r} must be a positive number (updates per environment step)"
+            ));
+        }
+        // Bounded, so that no setting leaves the run waiting forever.
+        let needed = self.learning_starts as f64 + self.total_updates as f64 / r;
+        if needed > MOST_ENV_STEPS {
+            return bad(format!(
+                "replay_ratio = {r:e}: total_updates = {} would need {needed:.3e} environment \
+                 steps, more than {MOST_ENV_STEPS:e}; raise it to at least {:.3e}",
+                self.total_updates,
+                self.total_updates as f64 / MOST_ENV_STEPS
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// `[targets]`: the critics' TD targets, and the replay they are computed from.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
@@ -250,6 +365,28 @@ pub struct TargetsConfig {
     /// Replay capacity in environment steps (whole trajectories are evicted,
     /// oldest first; Table 1 "Replay buffer capacity").
     pub replay_capacity: usize,
+}
+
+impl TargetsConfig {
+    /// Gamma in [0, 1), tau in (0, 1], a reward scale far from overflow.
+    pub fn validate(&self) -> Result<(), EppoError> {
+        check_counts(&[
+            ("replay_capacity", self.replay_capacity as i128),
+            ("n_step", self.n_step as i128),
+        ])
+        .or_else(bad)?;
+        check_numbers(&[
+            ("gamma", self.gamma, Range::UNIT_OPEN_HIGH),
+            ("tau", self.tau, Range::UNIT_OPEN_LOW),
+            // Scaled rewards go into float32 tokens: keep them far from overflow.
+            (
+                "reward_scale",
+                self.reward_scale,
+                Range::new(0.0, true, 1e6, false),
+            ),
+        ])
+        .or_else(bad)
+    }
 }
 
 /// `[constraint]`: how the cost budget acts, through the multiplier lambda
@@ -313,6 +450,141 @@ pub struct ConstraintConfig {
     pub termination_reward: f64,
 }
 
+impl ConstraintConfig {
+    /// Multiplier settings of at least 0 (lambda_init <= lambda_max), a
+    /// price only under the forms that charge one, and the multiplier held
+    /// at 0 under those that price the budget in the critics' targets.
+    pub fn validate(&self) -> Result<(), EppoError> {
+        check_numbers(&[
+            ("lambda_lr", self.lambda_lr, Range::NON_NEGATIVE),
+            ("lambda_max", self.lambda_max, Range::NON_NEGATIVE),
+            ("lambda_init", self.lambda_init, Range::NON_NEGATIVE),
+            (
+                "over_budget_cost_price",
+                self.over_budget_cost_price,
+                Range::NON_NEGATIVE,
+            ),
+            (
+                "termination_reward",
+                self.termination_reward,
+                Range::new(f64::NEG_INFINITY, true, 0.0, false),
+            ),
+        ])
+        .or_else(bad)?;
+        if self.lambda_init > self.lambda_max {
+            return bad(format!(
+                "need 0 <= lambda_init <= lambda_max; got {} and {}",
+                self.lambda_init, self.lambda_max
+            ));
+        }
+        self.validate_penalty()?;
+        self.validate_schedule()?;
+        if let Some(t) = self.constraint_after_revisit
+            && !(t > 0.0 && t <= 1.0)
+        {
+            return bad(format!(
+                "constraint_after_revisit = {t} is a revisit rate: set it in (0, 1], or drop it \
+                 to start the constraint after lambda_warmup_updates alone"
+            ));
+        }
+        if self.constraint_revisit_rounds == 0 {
+            return bad(
+                "constraint_revisit_rounds = 0 averages nothing: set it to 1 or more (20 by default)"
+                    .to_string(),
+            );
+        }
+        Ok(())
+    }
+
+    /// What each penalty form takes: the multiplier, the price, the
+    /// termination's reward, the per-episode multipliers.
+    fn validate_penalty(&self) -> Result<(), EppoError> {
+        let priced_in_targets = matches!(
+            self.penalty,
+            PenaltyForm::Saute | PenaltyForm::Excess | PenaltyForm::Terminate
+        );
+        if priced_in_targets && (self.lambda_init != 0.0 || self.lambda_lr != 0.0) {
+            let form = match self.penalty {
+                PenaltyForm::Saute => "saute",
+                PenaltyForm::Excess => "excess",
+                _ => "terminate",
+            };
+            return bad(format!(
+                "penalty = \"{form}\" prices the budget in the critics' targets, so the \
+                 multiplier must stay at 0: set lambda_init = 0 and lambda_lr = 0"
+            ));
+        }
+        if self.over_budget_cost_price > 0.0
+            && !matches!(self.penalty, PenaltyForm::Saute | PenaltyForm::Excess)
+        {
+            return bad(format!(
+                "over_budget_cost_price = {} is charged only under penalty = \"excess\" or \
+                 \"saute\": set one of them, or set over_budget_cost_price = 0",
+                self.over_budget_cost_price
+            ));
+        }
+        if self.termination_reward != 0.0 && self.penalty != PenaltyForm::Terminate {
+            return bad(format!(
+                "termination_reward = {} is the reward where penalty = \"terminate\" ends the \
+                 critics' value, and penalty is not \"terminate\": set it, or drop \
+                 termination_reward",
+                self.termination_reward
+            ));
+        }
+        if self.penalty == PenaltyForm::Excess && self.over_budget_cost_price <= 0.0 {
+            return bad(format!(
+                "penalty = \"excess\" with over_budget_cost_price = {} charges nothing past the \
+                 budget: set over_budget_cost_price > 0 (1.0 prices a unit of excess cost \
+                 like one goal)",
+                self.over_budget_cost_price
+            ));
+        }
+        if self.per_episode_multipliers && self.penalty != PenaltyForm::Hindsight {
+            return bad(
+                "per_episode_multipliers charges each episode's multiplier on its steps' hindsight \
+                 flag: set penalty = \"hindsight\", or drop per_episode_multipliers"
+                    .to_string(),
+            );
+        }
+        Ok(())
+    }
+
+    /// Later prices only for a form that charges one, each finite and at
+    /// least 0, their `after`s rising.
+    fn validate_schedule(&self) -> Result<(), EppoError> {
+        if self.over_budget_price_schedule.is_empty() {
+            return Ok(());
+        }
+        if !matches!(self.penalty, PenaltyForm::Saute | PenaltyForm::Excess) {
+            return bad(
+                "over_budget_price_schedule changes the price that penalty = \"excess\" or \
+                 \"saute\" charges: set one of them, or drop the schedule"
+                    .to_string(),
+            );
+        }
+        let afters = self.over_budget_price_schedule.iter().map(|c| c.after);
+        if afters.clone().zip(afters.skip(1)).any(|(a, b)| a >= b) {
+            return bad(
+                "over_budget_price_schedule's `after` values must rise from one change to \
+                 the next (updates since the constraint came on)"
+                    .to_string(),
+            );
+        }
+        if let Some(c) = self
+            .over_budget_price_schedule
+            .iter()
+            .find(|c| !(c.price.is_finite() && c.price >= 0.0))
+        {
+            return bad(format!(
+                "over_budget_price_schedule: price = {} after {} updates must be a finite \
+                 number >= 0",
+                c.price, c.after
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// `[exploration]`: behaviour noise, bilevel after AMAGO, and the actor's
 /// entropy bonus.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -357,6 +629,39 @@ pub struct ExplorationConfig {
     pub entropy_coef_lr: f64,
 }
 
+impl ExplorationConfig {
+    /// Every epsilon in [0, 1]; a tuned entropy weight that can move.
+    pub fn validate(&self) -> Result<(), EppoError> {
+        check_numbers(&[
+            ("entropy_coef", self.entropy_coef, Range::NON_NEGATIVE),
+            ("entropy_coef_lr", self.entropy_coef_lr, Range::NON_NEGATIVE),
+            ("eps_start", self.eps_start, Range::UNIT),
+            ("eps_end", self.eps_end, Range::UNIT),
+        ])
+        .or_else(bad)?;
+        for (name, v) in [
+            ("eps_last_start", self.eps_last_start),
+            ("eps_last_end", self.eps_last_end),
+        ] {
+            if let Some(v) = v
+                && !(0.0..=1.0).contains(&v)
+            {
+                return bad(format!("{name} = {v} must lie in [0, 1]"));
+            }
+        }
+        if let Some(t) = self.target_entropy
+            && !(t.is_finite() && self.entropy_coef > 0.0)
+        {
+            return bad(format!(
+                "target_entropy = {t} needs a finite target and a positive starting \
+                 entropy_coef (got {}): the weight moves in log space",
+                self.entropy_coef
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// `[novelty]`: a bonus for the critics during pretraining only, for cells
 /// new to the trajectory. Absent: off (the paper).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -389,6 +694,33 @@ pub struct NoveltyConfig {
         deserialize_with = "novelty_budget_or_bool"
     )]
     pub novelty_budget: NoveltyBudget,
+}
+
+impl NoveltyConfig {
+    /// A bonus of at least 0 on cells of a positive side; its critics and
+    /// its gate only with a bonus to pay.
+    pub fn validate(&self) -> Result<(), EppoError> {
+        check_numbers(&[
+            ("novelty_bonus", self.novelty_bonus, Range::NON_NEGATIVE),
+            ("novelty_cell", self.novelty_cell, Range::POSITIVE),
+        ])
+        .or_else(bad)?;
+        if self.novelty_budget != NoveltyBudget::Always && self.novelty_bonus == 0.0 {
+            return bad(
+                "novelty_budget gates the novelty bonus, which is off (novelty_bonus = 0): set \
+                 novelty_bonus > 0, or drop novelty_budget"
+                    .to_string(),
+            );
+        }
+        if self.novelty_critic && self.novelty_bonus == 0.0 {
+            return bad(
+                "novelty_critic learns the novelty bonus's value, which is off (novelty_bonus = \
+                 0): set novelty_bonus > 0, or drop novelty_critic"
+                    .to_string(),
+            );
+        }
+        Ok(())
+    }
 }
 
 impl Default for NoveltyConfig {
@@ -479,6 +811,68 @@ pub struct GoalConfig {
     pub scripted_first_episode: bool,
 }
 
+impl GoalConfig {
+    /// Shares in [0, 1] and rising ramps; a hidden share, and the dense
+    /// reward's gate, only for what is on; one kind of shown slots at a time.
+    pub fn validate(&self) -> Result<(), EppoError> {
+        check_numbers(&[
+            ("relabel_prob", self.relabel_prob, Range::UNIT),
+            (
+                "goal_recall_coef",
+                self.goal_recall_coef,
+                Range::NON_NEGATIVE,
+            ),
+            (
+                "dense_reward_coef",
+                self.dense_reward_coef,
+                Range::NON_NEGATIVE,
+            ),
+            ("goal_hidden_share", self.goal_hidden_share, Range::UNIT),
+            ("hazard_hidden_share", self.hazard_hidden_share, Range::UNIT),
+        ])
+        .or_else(bad)?;
+        if self.dense_reward_after_goal && self.dense_reward_coef == 0.0 {
+            return bad(
+                "dense_reward_after_goal = true pays nothing with dense_reward_coef = 0: \
+                 set dense_reward_coef > 0, or drop dense_reward_after_goal"
+                    .to_string(),
+            );
+        }
+        if self.hazards_in_observation && self.goal_in_observation {
+            return bad(
+                "hazards_in_observation and goal_in_observation both append slots to the observation: set one of them to false"
+                    .to_string(),
+            );
+        }
+        if self.goal_hidden_share > 0.0 && !self.goal_in_observation {
+            return bad(
+                "goal_hidden_share > 0 hides the goal slots of goal_in_observation in some \
+                 trajectories: set goal_in_observation = true, or goal_hidden_share = 0"
+                    .to_string(),
+            );
+        }
+        if self.goal_hidden_ramp[0] > self.goal_hidden_ramp[1] {
+            return bad(format!(
+                "goal_hidden_ramp = {:?} must rise ([from, until] environment steps, from <= until)",
+                self.goal_hidden_ramp
+            ));
+        }
+        if self.hazard_hidden_share > 0.0 && !self.hazards_in_observation {
+            return bad(
+                "hazard_hidden_share > 0 hides the hazard map of hazards_in_observation in some trajectories: set hazards_in_observation = true, or hazard_hidden_share = 0"
+                    .to_string(),
+            );
+        }
+        if self.hazard_hidden_ramp[0] > self.hazard_hidden_ramp[1] {
+            return bad(format!(
+                "hazard_hidden_ramp = {:?} must rise ([from, until] environment steps, from <= until)",
+                self.hazard_hidden_ramp
+            ));
+        }
+        Ok(())
+    }
+}
+
 /// How the episode's budget gates the novelty bonus.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
@@ -562,6 +956,11 @@ pub struct PriceChange {
     pub after: u64,
     /// The price per unit of excess cost from then on.
     pub price: f64,
+}
+
+/// A setting that cannot run, as the error each validation returns.
+fn bad(problem: String) -> Result<(), EppoError> {
+    Err(EppoError::Config(problem))
 }
 
 /// The most environment steps a run may need to reach its last update
@@ -1022,275 +1421,19 @@ impl EppoConfig {
 
 impl EppoConfig {
     /// Checks the values that would otherwise fail deep inside training:
-    /// every count at least 1, every number finite and in its range (named
-    /// in the error), and the sizes that must fit together.
+    /// each section its own (every count at least 1, every number finite
+    /// and in its range, named in the error), then the sizes that must fit
+    /// across sections.
     pub fn validate(&self) -> Result<(), EppoError> {
-        use crate::guard::{Range, check_counts, check_numbers};
-        let bad = |m: String| Err(EppoError::Config(m));
-        self.model.transformer.validate()?;
-        check_counts(&[
-            ("max_episode_steps", self.tasks.max_episode_steps as i128),
-            ("k_min", self.tasks.k_min as i128),
-            ("k_max", self.tasks.k_max as i128),
-            ("n_envs", self.tasks.n_envs as i128),
-            ("env_threads", self.run.env_threads as i128),
-            ("replay_capacity", self.targets.replay_capacity as i128),
-            ("encoder_hidden", i128::from(self.model.encoder_hidden)),
-            ("head_hidden", i128::from(self.model.head_hidden)),
-            ("n_critics", i128::from(self.model.n_critics)),
-            ("batch_size", self.optimisation.batch_size as i128),
-            ("total_updates", i128::from(self.optimisation.total_updates)),
-            (
-                "updates_per_round",
-                i128::from(self.optimisation.updates_per_round),
-            ),
-            ("checkpoint_every", i128::from(self.run.checkpoint_every)),
-            ("n_step", self.targets.n_step as i128),
-            (
-                "physics_steps_per_action",
-                self.tasks.physics_steps_per_action.map_or(1, |n| n as i128),
-            ),
-        ])
-        .or_else(bad)?;
-        crate::guard::check_torch_threads(self.run.torch_threads).or_else(bad)?;
-        if !(0..=1024).contains(&self.run.learner_threads) {
-            return bad(format!(
-                "learner_threads = {}: must be in [0, 1024] (0: torch_threads)",
-                self.run.learner_threads
-            ));
-        }
-        check_numbers(&[
-            (
-                "ctg_min",
-                f64::from(self.tasks.ctg_min),
-                Range::NON_NEGATIVE,
-            ),
-            ("ctg_max", f64::from(self.tasks.ctg_max), Range::POSITIVE),
-            ("gamma", self.targets.gamma, Range::UNIT_OPEN_HIGH),
-            ("tau", self.targets.tau, Range::UNIT_OPEN_LOW),
-            ("lr", self.optimisation.lr, Range::UNIT_OPEN_LOW),
-            ("beta1", self.optimisation.beta1, Range::UNIT_OPEN_HIGH),
-            ("beta2", self.optimisation.beta2, Range::UNIT_OPEN_HIGH),
-            ("adam_eps", self.optimisation.adam_eps, Range::UNIT_OPEN_LOW),
-            ("grad_clip", self.optimisation.grad_clip, Range::POSITIVE),
-            ("lambda_lr", self.constraint.lambda_lr, Range::NON_NEGATIVE),
-            (
-                "lambda_max",
-                self.constraint.lambda_max,
-                Range::NON_NEGATIVE,
-            ),
-            (
-                "lambda_init",
-                self.constraint.lambda_init,
-                Range::NON_NEGATIVE,
-            ),
-            (
-                "critic_weight",
-                self.optimisation.critic_weight,
-                Range::POSITIVE,
-            ),
-            (
-                "entropy_coef",
-                self.exploration.entropy_coef,
-                Range::NON_NEGATIVE,
-            ),
-            (
-                "entropy_coef_lr",
-                self.exploration.entropy_coef_lr,
-                Range::NON_NEGATIVE,
-            ),
-            // Scaled rewards go into float32 tokens: keep them far from overflow.
-            (
-                "reward_scale",
-                self.targets.reward_scale,
-                Range::new(0.0, true, 1e6, false),
-            ),
-            ("eps_start", self.exploration.eps_start, Range::UNIT),
-            ("eps_end", self.exploration.eps_end, Range::UNIT),
-            ("relabel_prob", self.goal.relabel_prob, Range::UNIT),
-            (
-                "goal_recall_coef",
-                self.goal.goal_recall_coef,
-                Range::NON_NEGATIVE,
-            ),
-            (
-                "dense_reward_coef",
-                self.goal.dense_reward_coef,
-                Range::NON_NEGATIVE,
-            ),
-            (
-                "novelty_bonus",
-                self.novelty.novelty_bonus,
-                Range::NON_NEGATIVE,
-            ),
-            ("novelty_cell", self.novelty.novelty_cell, Range::POSITIVE),
-            (
-                "goal_hidden_share",
-                self.goal.goal_hidden_share,
-                Range::UNIT,
-            ),
-            (
-                "hazard_hidden_share",
-                self.goal.hazard_hidden_share,
-                Range::UNIT,
-            ),
-            (
-                "over_budget_cost_price",
-                self.constraint.over_budget_cost_price,
-                Range::NON_NEGATIVE,
-            ),
-            (
-                "termination_reward",
-                self.constraint.termination_reward,
-                Range::new(f64::NEG_INFINITY, true, 0.0, false),
-            ),
-        ])
-        .or_else(bad)?;
-        if let Some(t) = self.exploration.target_entropy
-            && !(t.is_finite() && self.exploration.entropy_coef > 0.0)
-        {
-            return bad(format!(
-                "target_entropy = {t} needs a finite target and a positive starting \
-                 entropy_coef (got {}): the weight moves in log space",
-                self.exploration.entropy_coef
-            ));
-        }
-        if self.goal.dense_reward_after_goal && self.goal.dense_reward_coef == 0.0 {
-            return bad(
-                "dense_reward_after_goal = true pays nothing with dense_reward_coef = 0: \
-                 set dense_reward_coef > 0, or drop dense_reward_after_goal"
-                    .to_string(),
-            );
-        }
-        if matches!(
-            self.constraint.penalty,
-            PenaltyForm::Saute | PenaltyForm::Excess | PenaltyForm::Terminate
-        ) && (self.constraint.lambda_init != 0.0 || self.constraint.lambda_lr != 0.0)
-        {
-            let form = match self.constraint.penalty {
-                PenaltyForm::Saute => "saute",
-                PenaltyForm::Excess => "excess",
-                _ => "terminate",
-            };
-            return bad(format!(
-                "penalty = \"{form}\" prices the budget in the critics' targets, so the \
-                 multiplier must stay at 0: set lambda_init = 0 and lambda_lr = 0"
-            ));
-        }
-        if self.constraint.over_budget_cost_price > 0.0
-            && !matches!(
-                self.constraint.penalty,
-                PenaltyForm::Saute | PenaltyForm::Excess
-            )
-        {
-            return bad(format!(
-                "over_budget_cost_price = {} is charged only under penalty = \"excess\" or \
-                 \"saute\": set one of them, or set over_budget_cost_price = 0",
-                self.constraint.over_budget_cost_price
-            ));
-        }
-        if self.constraint.termination_reward != 0.0
-            && self.constraint.penalty != PenaltyForm::Terminate
-        {
-            return bad(format!(
-                "termination_reward = {} is the reward where penalty = \"terminate\" ends the \
-                 critics' value, and penalty is not \"terminate\": set it, or drop \
-                 termination_reward",
-                self.constraint.termination_reward
-            ));
-        }
-        if self.constraint.penalty == PenaltyForm::Excess
-            && self.constraint.over_budget_cost_price <= 0.0
-        {
-            return bad(format!(
-                "penalty = \"excess\" with over_budget_cost_price = {} charges nothing past the \
-                 budget: set over_budget_cost_price > 0 (1.0 prices a unit of excess cost \
-                 like one goal)",
-                self.constraint.over_budget_cost_price
-            ));
-        }
-        if !self.constraint.over_budget_price_schedule.is_empty() {
-            if !matches!(
-                self.constraint.penalty,
-                PenaltyForm::Saute | PenaltyForm::Excess
-            ) {
-                return bad(
-                    "over_budget_price_schedule changes the price that penalty = \"excess\" or \
-                     \"saute\" charges: set one of them, or drop the schedule"
-                        .to_string(),
-                );
-            }
-            let afters = self
-                .constraint
-                .over_budget_price_schedule
-                .iter()
-                .map(|c| c.after);
-            if afters.clone().zip(afters.skip(1)).any(|(a, b)| a >= b) {
-                return bad(
-                    "over_budget_price_schedule's `after` values must rise from one change to \
-                     the next (updates since the constraint came on)"
-                        .to_string(),
-                );
-            }
-            if let Some(c) = self
-                .constraint
-                .over_budget_price_schedule
-                .iter()
-                .find(|c| !(c.price.is_finite() && c.price >= 0.0))
-            {
-                return bad(format!(
-                    "over_budget_price_schedule: price = {} after {} updates must be a finite \
-                     number >= 0",
-                    c.price, c.after
-                ));
-            }
-        }
-        if self.novelty.novelty_budget != NoveltyBudget::Always && self.novelty.novelty_bonus == 0.0
-        {
-            return bad(
-                "novelty_budget gates the novelty bonus, which is off (novelty_bonus = 0): set \
-                 novelty_bonus > 0, or drop novelty_budget"
-                    .to_string(),
-            );
-        }
-        if self.novelty.novelty_critic && self.novelty.novelty_bonus == 0.0 {
-            return bad(
-                "novelty_critic learns the novelty bonus's value, which is off (novelty_bonus = \
-                 0): set novelty_bonus > 0, or drop novelty_critic"
-                    .to_string(),
-            );
-        }
-        if self.goal.goal_hidden_share > 0.0 && !self.goal.goal_in_observation {
-            return bad(
-                "goal_hidden_share > 0 hides the goal slots of goal_in_observation in some \
-                 trajectories: set goal_in_observation = true, or goal_hidden_share = 0"
-                    .to_string(),
-            );
-        }
-        if self.goal.goal_hidden_ramp[0] > self.goal.goal_hidden_ramp[1] {
-            return bad(format!(
-                "goal_hidden_ramp = {:?} must rise ([from, until] environment steps, from <= until)",
-                self.goal.goal_hidden_ramp
-            ));
-        }
-        if self.goal.hazards_in_observation && self.goal.goal_in_observation {
-            return bad(
-                "hazards_in_observation and goal_in_observation both append slots to the observation: set one of them to false"
-                    .to_string(),
-            );
-        }
-        if self.goal.hazard_hidden_share > 0.0 && !self.goal.hazards_in_observation {
-            return bad(
-                "hazard_hidden_share > 0 hides the hazard map of hazards_in_observation in some trajectories: set hazards_in_observation = true, or hazard_hidden_share = 0"
-                    .to_string(),
-            );
-        }
-        if self.goal.hazard_hidden_ramp[0] > self.goal.hazard_hidden_ramp[1] {
-            return bad(format!(
-                "hazard_hidden_ramp = {:?} must rise ([from, until] environment steps, from <= until)",
-                self.goal.hazard_hidden_ramp
-            ));
-        }
+        self.model.validate()?;
+        self.run.validate()?;
+        self.tasks.validate()?;
+        self.optimisation.validate()?;
+        self.targets.validate()?;
+        self.constraint.validate()?;
+        self.exploration.validate()?;
+        self.novelty.validate()?;
+        self.goal.validate()?;
         if self.novelty.novelty_budget == NoveltyBudget::WithinBudget
             && self.constraint.penalty != PenaltyForm::Excess
         {
@@ -1300,87 +1443,24 @@ impl EppoConfig {
                     .to_string(),
             );
         }
-        if let Some(t) = self.constraint.constraint_after_revisit
-            && !(t > 0.0 && t <= 1.0)
-        {
+        // A trajectory fits the model and the replay; counts bounded by what
+        // the run can use, so that no setting leaves it computing one update
+        // for hours or waiting forever.
+        let longest = self.tasks.longest_trajectory();
+        let (k_max, t_max) = (self.tasks.k_max, self.tasks.max_episode_steps);
+        let max_len = self.model.transformer.max_len;
+        if longest as u128 > max_len as u128 {
             return bad(format!(
-                "constraint_after_revisit = {t} is a revisit rate: set it in (0, 1], or drop it \
-                 to start the constraint after lambda_warmup_updates alone"
+                "a trajectory of k_max * max_episode_steps = {k_max} * {t_max} = {longest} steps \
+                 exceeds model.max_len = {max_len}"
             ));
         }
-        if self.constraint.per_episode_multipliers
-            && self.constraint.penalty != PenaltyForm::Hindsight
-        {
-            return bad(
-                "per_episode_multipliers charges each episode's multiplier on its steps' hindsight \
-                 flag: set penalty = \"hindsight\", or drop per_episode_multipliers"
-                    .to_string(),
-            );
-        }
-        if self.constraint.constraint_revisit_rounds == 0 {
-            return bad(
-                "constraint_revisit_rounds = 0 averages nothing: set it to 1 or more (20 by default)"
-                    .to_string(),
-            );
-        }
-        if let Some(r) = self.optimisation.replay_ratio
-            && !(r.is_finite() && r > 0.0)
-        {
+        let capacity = self.targets.replay_capacity;
+        if capacity < longest {
             return bad(format!(
-                "replay_ratio = {r} must be a positive number (updates per environment step)"
+                "replay_capacity = {capacity} cannot hold one trajectory of {longest} steps"
             ));
         }
-        if self.tasks.k_min == 0 || self.tasks.k_min > self.tasks.k_max {
-            return bad(format!(
-                "need 1 <= k_min <= k_max, got k_min = {}, k_max = {}",
-                self.tasks.k_min, self.tasks.k_max
-            ));
-        }
-        let longest = self
-            .tasks
-            .k_max
-            .saturating_mul(self.tasks.max_episode_steps);
-        if longest as u128 > self.model.transformer.max_len as u128 {
-            return bad(format!(
-                "a trajectory of k_max * max_episode_steps = {} * {} = {longest} steps exceeds model.max_len = {}",
-                self.tasks.k_max, self.tasks.max_episode_steps, self.model.transformer.max_len
-            ));
-        }
-        if !(self.tasks.ctg_min >= 0.0
-            && self.tasks.ctg_min <= self.tasks.ctg_max
-            && self.tasks.ctg_max > 0.0)
-        {
-            return bad(format!(
-                "need 0 <= ctg_min <= ctg_max, ctg_max > 0; got {} and {}",
-                self.tasks.ctg_min, self.tasks.ctg_max
-            ));
-        }
-        if self.constraint.lambda_init > self.constraint.lambda_max {
-            return bad(format!(
-                "need 0 <= lambda_init <= lambda_max; got {} and {}",
-                self.constraint.lambda_init, self.constraint.lambda_max
-            ));
-        }
-        for (name, v) in [
-            ("eps_start", Some(self.exploration.eps_start)),
-            ("eps_end", Some(self.exploration.eps_end)),
-            ("eps_last_start", self.exploration.eps_last_start),
-            ("eps_last_end", self.exploration.eps_last_end),
-        ] {
-            if let Some(v) = v
-                && !(0.0..=1.0).contains(&v)
-            {
-                return bad(format!("{name} = {v} must lie in [0, 1]"));
-            }
-        }
-        if self.targets.replay_capacity < longest {
-            return bad(format!(
-                "replay_capacity = {} cannot hold one trajectory of {longest} steps",
-                self.targets.replay_capacity
-            ));
-        }
-        // Counts and ratios bounded by what the run can use, so that no
-        // setting leaves it computing one update for hours or waiting forever.
         if self.targets.n_step > longest {
             return bad(format!(
                 "n_step = {}: at most k_max * max_episode_steps = {longest}, the longest \
@@ -1388,26 +1468,13 @@ impl EppoConfig {
                 self.targets.n_step
             ));
         }
-        if self.optimisation.learning_starts > self.targets.replay_capacity as u64 {
+        if self.optimisation.learning_starts > capacity as u64 {
             return bad(format!(
-                "learning_starts = {}: at most replay_capacity = {} environment steps (updates \
-                 would wait for more steps than the replay keeps)",
-                self.optimisation.learning_starts, self.targets.replay_capacity
+                "learning_starts = {}: at most replay_capacity = {capacity} environment steps \
+                 (updates would wait for more steps than the replay keeps)",
+                self.optimisation.learning_starts
             ));
         }
-        if let Some(r) = self.optimisation.replay_ratio {
-            let needed = self.optimisation.learning_starts as f64
-                + self.optimisation.total_updates as f64 / r;
-            if needed > MOST_ENV_STEPS {
-                return bad(format!(
-                    "replay_ratio = {r:e}: total_updates = {} would need {needed:.3e} environment \
-                     steps, more than {MOST_ENV_STEPS:e}; raise it to at least {:.3e}",
-                    self.optimisation.total_updates,
-                    self.optimisation.total_updates as f64 / MOST_ENV_STEPS
-                ));
-            }
-        }
-        parse_device(&self.run.device)?;
         Ok(())
     }
 }
