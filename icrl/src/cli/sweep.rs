@@ -9,7 +9,7 @@
 //! preset = "quick"
 //! seeds = [0, 1]
 //! out = "runs/sweep"       # relative to this file; on a filesystem every node sees
-//! [set]                    # --set for every run
+//! [set]                    # --set for every run (a name, or section.name)
 //! total_updates = 2000
 //! [grid]                   # one run per seed x combination of these values
 //! lr = [1e-4, 3e-4]

@@ -1,7 +1,7 @@
 //! EPPO: safe reinforcement pretraining (the paper's Algorithm 1). This file
 //! is the algorithm, read top to bottom: the learner's state, [`train`]'s loop
 //! (collect, update, checkpoint, log) and [`Learner::update`]. Its parts sit
-//! beside it: `config.rs` (hyperparameters, validation, exploration),
+//! beside it: `config/` (hyperparameters in sections, validation, exploration),
 //! `net.rs` (networks, heads, the tanh-Gaussian), `replay.rs` (trajectories,
 //! the buffer, tokens and batches), `losses.rs` (Lv, Lc, Lp, Eq. 7, Polyak),
 //! `collect.rs` (acting in the vectorised environments), `overlap.rs` (the

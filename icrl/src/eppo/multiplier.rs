@@ -2,7 +2,7 @@
 //! lambda <- clip(lambda + eta g, 0, lambda_max), with g the batch mean of
 //! each trajectory's max_k (C_k - delta), and when the constraint comes on.
 //! (A PID Lagrangian and a late-episode violation signal were tried on the
-//! grid and removed: `config.rs::RETIRED`.)
+//! grid and removed: `config/migrate.rs::RETIRED`.)
 
 use serde::{Deserialize, Serialize};
 
