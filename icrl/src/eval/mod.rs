@@ -2,7 +2,7 @@
 //!
 //! This file is the protocol: tasks, conditions and the batched rollout.
 //! Beside it: `report.rs` (results and their summaries), `load.rs` (the
-//! agents: checkpoints loaded, the random policy), `command.rs` (the `eval`
+//! agents: checkpoints loaded, the random policy), `command/` (the `eval`
 //! command: checkpoints in, JSON, CSV, figures and an animation out, drawn
 //! by `render.rs` and [`crate::plots`]) and `error.rs` (the command's errors).
 //!

@@ -1,0 +1,146 @@
+//! `eval --from DIR`: Figures 1 and 2 redrawn with one column per
+//! environment from the JSON reports of earlier runs.
+
+use std::path::{Path, PathBuf};
+
+use safety_envs::EnvName;
+use safety_envs::output::{self, Existing};
+
+use crate::eval::Summary;
+use crate::eval::error::EvalCmdError;
+use crate::plots::{self, EnvCurves};
+use crate::report::Method;
+
+use super::files::{io_err, refuse_checkpoint_folder};
+use super::*;
+
+/// Redraws Figures 1 and 2 with one column per environment from the JSON
+/// reports earlier `eval` runs wrote into `dirs` (files that are not reports
+/// are skipped). Writes `figure1_all` and, when sweeps are present,
+/// `figure2_all` (PNG and SVG) into `out`.
+pub fn replot(dirs: &[PathBuf], out: &Path, force: bool) -> Result<EvalOutputs, EvalCmdError> {
+    refuse_checkpoint_folder(out)?;
+    for f in [
+        "figure1_all.png",
+        "figure1_all.svg",
+        "figure2_all.png",
+        "figure2_all.svg",
+    ] {
+        // A missing `out` is created below: nothing in it to replace.
+        if out.is_dir() {
+            output::check_output(&out.join(f), Existing::from_force(force))?;
+        }
+    }
+    // (env, method, sweep) -> summary, in file-name order for stability.
+    let mut reports: Vec<(EnvName, Method, bool, Summary)> = Vec::new();
+    for dir in dirs {
+        if !dir.is_dir() {
+            return Err(EvalCmdError::Options(format!(
+                "--from {}: no such folder (pass folders that `icrl eval` wrote its reports into)",
+                dir.display()
+            )));
+        }
+        let mut files: Vec<PathBuf> = std::fs::read_dir(dir)
+            .map_err(io_err(dir))?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .filter(|p| p.extension().is_some_and(|x| x == "json"))
+            .collect();
+        files.sort();
+        for f in files {
+            let text = std::fs::read(&f).map_err(io_err(&f))?;
+            // A damaged or foreign JSON file is named, never skipped in
+            // silence: the figure would lack a curve without saying so.
+            let v = serde_json::from_slice::<serde_json::Value>(&text).map_err(|e| {
+                EvalCmdError::Options(format!(
+                    "--from: {} is not readable JSON ({e}): a damaged eval report? Re-run the eval \
+                     that wrote it, or move the file out of the folder",
+                    f.display()
+                ))
+            })?;
+            let (Some(env), Some(method), Some(protocol), Some(summary)) = (
+                v.get("env").and_then(|e| e.as_str()),
+                v.get("method").and_then(|m| m.as_str()),
+                v.get("protocol").and_then(|p| p.as_str()),
+                v.get("summary"),
+            ) else {
+                return Err(EvalCmdError::Options(format!(
+                    "--from: {} is JSON but not an icrl eval report (it lacks env, method, protocol or \
+                     summary): move it out of the folder",
+                    f.display()
+                )));
+            };
+            // In-distribution diagnostics are not the paper's figures.
+            let Ok(env) = env.parse::<EnvName>() else {
+                continue;
+            };
+            if protocol.ends_with("-centre") {
+                continue;
+            }
+            let method = match method {
+                "Eppo" => Method::Eppo,
+                "Ad" => Method::Ad,
+                "Random" => Method::Random,
+                _ => continue,
+            };
+            let summary: Summary =
+                serde_json::from_value(summary.clone()).map_err(|source| EvalCmdError::Json {
+                    path: f.display().to_string(),
+                    source,
+                })?;
+            reports.push((env, method, protocol == "sweep", summary));
+        }
+    }
+    if reports.is_empty() {
+        return Err(EvalCmdError::Options(format!(
+            "no eval reports (*.json written by icrl eval) in {}",
+            dirs.iter()
+                .map(|d| d.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        )));
+    }
+    let curves = |sweep: bool| -> Vec<EnvCurves> {
+        EnvName::ALL
+            .into_iter()
+            .filter_map(|env| {
+                let mut c = EnvCurves {
+                    env: env_defaults(env).title.into(),
+                    methods: Vec::new(),
+                    random: None,
+                };
+                for method in [Method::Eppo, Method::Ad, Method::Random] {
+                    if let Some((.., s)) = reports
+                        .iter()
+                        .find(|r| r.0 == env && r.1 == method && r.2 == sweep)
+                    {
+                        match method {
+                            Method::Random => c.random = Some(s.clone()),
+                            m => c.methods.push((m.to_string(), s.clone())),
+                        }
+                    }
+                }
+                (!c.methods.is_empty() || c.random.is_some()).then_some(c)
+            })
+            .collect()
+    };
+    output::create_folder(out)?;
+    let mut outputs = EvalOutputs::default();
+    let fig1 = curves(false);
+    if !fig1.is_empty() {
+        outputs
+            .files
+            .extend(plots::figure1(&fig1, &out.join("figure1_all"))?);
+    }
+    let fig2 = curves(true);
+    if !fig2.is_empty() {
+        outputs
+            .files
+            .extend(plots::figure2(&fig2, &out.join("figure2_all"))?);
+    }
+    outputs.lines.push(format!(
+        "redrew {} reports ({} environments)",
+        reports.len(),
+        fig1.len().max(fig2.len())
+    ));
+    Ok(outputs)
+}
