@@ -2,7 +2,9 @@
 //! (paper Section 3.1, Eq. 16 and 17; SPEC section 4).
 //!
 //! This file is the training run, read top to bottom: what can fail, the
-//! request and metrics, and [`train`]. Its parts sit beside it: `config.rs`
+//! request and metrics, and [`train`], then its steps (the run opened, the
+//! fixed validation windows, the metrics log, the model, the resume). Its
+//! parts sit beside it: `config.rs`
 //! (hyperparameters, presets, [`AdSpec`], the memory estimate), `windows.rs`
 //! (tokens, RTG/CTG labels, training windows), `model.rs` (the model and the
 //! loss), `checkpoint.rs` (save and load) and `agent.rs` (the frozen
@@ -187,23 +189,7 @@ pub fn train(
     on_update: &mut dyn FnMut(usize),
 ) -> Result<TrainSummary, AdError> {
     let cfg = req.cfg;
-    cfg.validate()?;
-    // Finite values and actions inside the action space, or libtorch would
-    // train to NaN or abort on an out-of-range class index.
-    req.data.validate(req.dataset_path)?;
-    let dir = req.run_dir;
-    if cfg.torch_threads > 0 {
-        tch::set_num_threads(cfg.torch_threads);
-    }
-    let spec = spec_for(req.data, req.dataset_path);
-    memory_estimate(cfg, &spec, req.data.total_steps())
-        .check()
-        .map_err(AdError::Config)?;
-    let ck = dir.join("checkpoints");
-    fs::create_dir_all(&ck).map_err(|e| io_err(&ck, e))?;
-    let run = RunDir {
-        path: dir.to_path_buf(),
-    };
+    let (run, spec) = open_run(req)?;
     // One process per run folder until training returns.
     let _lock = run.lock()?;
 
@@ -219,27 +205,9 @@ pub fn train(
     // Skip the sampling stream forward so a resumed run does not replay windows.
     rng.set_word_pos((resumed_from as u128) << 16);
 
-    // Fixed validation windows.
     let device = vs.device();
-    let val_batches: Vec<(Tensor, Tensor)> = if val_set.is_empty() {
-        Vec::new()
-    } else {
-        let mut vrng = ChaCha8Rng::seed_from_u64(cfg.seed ^ 0x5eed);
-        (0..4)
-            .map(|_| val_set.sample(cfg.batch_size.min(64), cfg.model.max_len, &mut vrng))
-            .collect::<Result<_, _>>()?
-    };
-
-    let metrics_path = dir.join("metrics.jsonl");
-    let mut metrics_file = fs::OpenOptions::new()
-        .create(true)
-        .append(true)
-        .open(&metrics_path)
-        .map_err(|e| io_err(&metrics_path, e))?;
-    let started = Instant::now();
-    let (mut loss_sum, mut acc_sum, mut n_sum) = (0.0, 0.0, 0.0);
-    let mut first = None;
-    let mut last = None;
+    let val_batches = validation_windows(&val_set, cfg)?;
+    let mut log = MetricsLog::open(req.run_dir)?;
     let window = cfg.model.max_len;
     while state.update < cfg.updates {
         let lr = cfg.lr_at(state.update);
@@ -253,9 +221,10 @@ pub fn train(
             what: e.to_string(),
             checkpoint: last_ckpt.clone(),
         })?;
-        loss_sum += l.double_value(&[]);
-        acc_sum += acc.map_or(0.0, |a| a.double_value(&[]));
-        n_sum += 1.0;
+        log.add(
+            l.double_value(&[]),
+            acc.map_or(0.0, |a| a.double_value(&[])),
+        );
         state.update += 1;
         state.samples += (cfg.batch_size * window) as u64;
         on_update(state.update);
@@ -263,25 +232,8 @@ pub fn train(
         let stop = crate::stop::requested();
         let done = state.update == cfg.updates;
         if state.update.is_multiple_of(cfg.log_every) || done || stop {
-            let (val_loss, val_acc) = validation(&model, &val_batches, device, spec.discrete)?;
-            let m = AdMetrics {
-                update: state.update,
-                samples: state.samples,
-                train_loss: loss_sum / n_sum,
-                train_accuracy: spec.discrete.then_some(acc_sum / n_sum),
-                val_loss,
-                val_accuracy: val_acc,
-                learning_rate: lr,
-                seconds: started.elapsed().as_secs_f64(),
-            };
-            let line = serde_json::to_string(&m).map_err(|e| io_err(dir, e))?;
-            writeln!(metrics_file, "{line}").map_err(|e| io_err(&metrics_path, e))?;
-            on_log(&m);
-            if first.is_none() {
-                first = Some(m.clone());
-            }
-            last = Some(m);
-            (loss_sum, acc_sum, n_sum) = (0.0, 0.0, 0.0);
+            let val = validation(&model, &val_batches, device, spec.discrete)?;
+            on_log(&log.write(&state, lr, val, spec.discrete)?);
         }
         if state.update.is_multiple_of(cfg.checkpoint_every) || done || stop {
             last_ckpt = Some(save_checkpoint(&run, cfg, &spec, &vs, &opt, &state)?);
@@ -294,14 +246,125 @@ pub fn train(
         }
     }
     Ok(TrainSummary {
-        run_dir: dir.to_path_buf(),
+        run_dir: req.run_dir.to_path_buf(),
         train_histories: train_set.len(),
         val_histories: val_set.len(),
         updates: state.update,
-        first,
-        last,
+        first: log.first,
+        last: log.last,
         resumed_from,
     })
+}
+
+/// Checks the settings, the data (finite values and actions inside the
+/// action space, or libtorch would train to NaN or abort on an out-of-range
+/// class index) and the memory the run needs, and makes the run folder.
+/// Returns it with the model's sizes.
+fn open_run(req: &TrainRequest<'_>) -> Result<(RunDir, AdSpec), AdError> {
+    let cfg = req.cfg;
+    cfg.validate()?;
+    req.data.validate(req.dataset_path)?;
+    let dir = req.run_dir;
+    if cfg.torch_threads > 0 {
+        tch::set_num_threads(cfg.torch_threads);
+    }
+    let spec = spec_for(req.data, req.dataset_path);
+    memory_estimate(cfg, &spec, req.data.total_steps())
+        .check()
+        .map_err(AdError::Config)?;
+    let ck = dir.join("checkpoints");
+    fs::create_dir_all(&ck).map_err(|e| io_err(&ck, e))?;
+    let run = RunDir {
+        path: dir.to_path_buf(),
+    };
+    Ok((run, spec))
+}
+
+/// Fixed validation windows: four batches of the held-out histories, drawn
+/// once (none without held-out histories).
+fn validation_windows(
+    val_set: &TokenSet,
+    cfg: &AdConfig,
+) -> Result<Vec<(Tensor, Tensor)>, AdError> {
+    if val_set.is_empty() {
+        return Ok(Vec::new());
+    }
+    let mut vrng = ChaCha8Rng::seed_from_u64(cfg.seed ^ 0x5eed);
+    (0..4)
+        .map(|_| val_set.sample(cfg.batch_size.min(64), cfg.model.max_len, &mut vrng))
+        .collect()
+}
+
+/// The run's `metrics.jsonl` (appended to), the training loss and accuracy
+/// summed since its last line, and the first and last lines written.
+struct MetricsLog {
+    dir: PathBuf,
+    path: PathBuf,
+    file: fs::File,
+    started: Instant,
+    loss_sum: f64,
+    acc_sum: f64,
+    n_sum: f64,
+    first: Option<AdMetrics>,
+    last: Option<AdMetrics>,
+}
+
+impl MetricsLog {
+    fn open(dir: &Path) -> Result<Self, AdError> {
+        let path = dir.join("metrics.jsonl");
+        let file = fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(&path)
+            .map_err(|e| io_err(&path, e))?;
+        Ok(MetricsLog {
+            dir: dir.to_path_buf(),
+            path,
+            file,
+            started: Instant::now(),
+            loss_sum: 0.0,
+            acc_sum: 0.0,
+            n_sum: 0.0,
+            first: None,
+            last: None,
+        })
+    }
+
+    /// One update's training loss and accuracy.
+    fn add(&mut self, loss: f64, accuracy: f64) {
+        self.loss_sum += loss;
+        self.acc_sum += accuracy;
+        self.n_sum += 1.0;
+    }
+
+    /// Writes the line of `state`'s update: the means since the last line,
+    /// the validation loss and accuracy `val`, the learning rate; returns it.
+    fn write(
+        &mut self,
+        state: &TrainState,
+        learning_rate: f64,
+        (val_loss, val_accuracy): (Option<f64>, Option<f64>),
+        discrete: bool,
+    ) -> Result<AdMetrics, AdError> {
+        let m = AdMetrics {
+            update: state.update,
+            samples: state.samples,
+            train_loss: self.loss_sum / self.n_sum,
+            train_accuracy: discrete.then_some(self.acc_sum / self.n_sum),
+            val_loss,
+            val_accuracy,
+            learning_rate,
+            seconds: self.started.elapsed().as_secs_f64(),
+        };
+        let line = serde_json::to_string(&m).map_err(|e| io_err(&self.dir, e))?;
+        writeln!(self.file, "{line}").map_err(|e| io_err(&self.path, e))?;
+        if self.first.is_none() {
+            self.first = Some(m.clone());
+        }
+        self.last = Some(m.clone());
+        (self.loss_sum, self.acc_sum, self.n_sum) = (0.0, 0.0, 0.0);
+        Ok(m)
+    }
 }
 
 /// A fresh model and its optimizer, initialised from `cfg.seed`, on the GPU
