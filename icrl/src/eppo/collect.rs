@@ -9,7 +9,9 @@ use tch::{Device, Kind, Tensor};
 
 use std::sync::atomic::{AtomicBool, Ordering};
 
-use safety_envs::{EnvName, Orientation, VecAction, VecEnv, sample_task, spawn_config};
+use safety_envs::{
+    EnvName, Orientation, StepOutcome, VecAction, VecEnv, sample_task, spawn_config,
+};
 
 use super::Learner;
 use super::config::{EppoConfig, EppoError};
@@ -337,7 +339,6 @@ impl Collector<'_> {
         &mut self,
         venv: &mut VecEnv,
     ) -> Result<(Vec<Trajectory>, RoundStats), EppoError> {
-        let n = venv.len();
         let (budgets, ks, eps_scale) = self.draw_tasks(venv)?;
         let exploration = self.cfg.exploration.schedule(*self.env_steps);
         let horizons: Vec<usize> = ks
@@ -345,7 +346,36 @@ impl Collector<'_> {
             .map(|k| k * self.cfg.tasks.max_episode_steps)
             .collect();
         let mut acting = Acting::new(self.net, self.spec, self.cfg, &budgets);
-        let mut trajs: Vec<Trajectory> = budgets
+        let mut round = self.start_round(venv, &budgets, ks);
+        while round.active.iter().any(|&x| x) {
+            if self.quit.is_some_and(|q| q.load(Ordering::Relaxed)) {
+                return Ok((Vec::new(), RoundStats::default()));
+            }
+            let eps: Vec<f64> = (0..venv.len())
+                .map(|i| exploration.at(round.trajs[i].len(), horizons[i], eps_scale[i]))
+                .collect();
+            let (net_actions, env_actions, ctg_now) = self.act(venv, &mut acting, &round, &eps)?;
+            round.record_inputs(&ctg_now, &net_actions, &env_actions);
+            let outcomes = self.step_envs(venv, &env_actions)?;
+            round.record_outcomes(venv, &outcomes, &net_actions);
+        }
+        *self.env_steps += round.steps;
+        let radii = (
+            self.cfg.novelty.novelty_cell,
+            crate::signals::repeat_radius(self.env),
+        );
+        let mut stats = round_stats(&round.trajs, round.steps, self.spec, radii);
+        if self.cfg.goal.goal_in_observation {
+            stats.goal_slots = GoalSlotStats::of(&round.trajs, &round.hidden);
+        }
+        Ok((round.trajs, stats))
+    }
+
+    /// The round's trajectories, empty but for their budgets and goals,
+    /// which of them hide their goal slots, and the first step's input.
+    fn start_round(&mut self, venv: &VecEnv, budgets: &[f32], ks: Vec<usize>) -> InRound {
+        let n = venv.len();
+        let trajs: Vec<Trajectory> = budgets
             .iter()
             .enumerate()
             .map(|(i, &budget)| Trajectory {
@@ -359,131 +389,85 @@ impl Collector<'_> {
         let hidden: Vec<bool> = (0..n)
             .map(|_| hide_share > 0.0 && self.rng.r#gen::<f64>() < hide_share)
             .collect();
-        let mut active = vec![true; n];
         let (od, a) = (self.spec.obs_dim, self.spec.act_flat());
         let slots = self.cfg.goal.shown_slots(self.env);
         let mut obs = venv.observations().to_vec();
         hide_slots(&mut obs, od, slots, &hidden);
-        let mut arrived = vec![0f32; n * od];
-        let mut prev_action = vec![0f32; n * a];
-        let (mut reward, mut cost, mut start) = (vec![0f32; n], vec![0f32; n], vec![true; n]);
-        let (mut ep_ret, mut ep_cost) = (vec![0f32; n], vec![0f32; n]);
-        let mut steps = 0u64;
-        while active.iter().any(|&x| x) {
-            if self.quit.is_some_and(|q| q.load(Ordering::Relaxed)) {
-                return Ok((Vec::new(), RoundStats::default()));
-            }
-            let input = StepInput {
-                obs: &obs,
-                arrived_obs: &arrived,
-                prev_action: &prev_action,
-                reward: &reward,
-                cost: &cost,
-                episode_start: &start,
-            };
-            let ctg_now = acting.observe(&input);
-            self.times
-                .time(|t| &mut t.tokens, || acting.write_tokens(&input));
-            let (net, spec, rng) = (self.net, self.spec, &mut *self.rng);
-            let eps: Vec<f64> = (0..n)
-                .map(|i| exploration.at(trajs[i].len(), horizons[i], eps_scale[i]))
+        InRound {
+            trajs,
+            active: vec![true; n],
+            hidden,
+            ks,
+            od,
+            a,
+            slots,
+            obs,
+            arrived: vec![0f32; n * od],
+            prev_action: vec![0f32; n * a],
+            reward: vec![0f32; n],
+            cost: vec![0f32; n],
+            start: vec![true; n],
+            ep_ret: vec![0f32; n],
+            ep_cost: vec![0f32; n],
+            steps: 0,
+        }
+    }
+
+    /// The actions at the round's next step: the CTGs updated, the tokens
+    /// written, one forward step through the cache, actions sampled with
+    /// exploration `eps` (scripted in first episodes with
+    /// `scripted_first_episode`). Returns them as the network sees them and
+    /// as the environments take them, with the CTGs the policy saw.
+    fn act(
+        &mut self,
+        venv: &VecEnv,
+        acting: &mut Acting,
+        round: &InRound,
+        eps: &[f64],
+    ) -> Result<(Vec<f32>, EnvActions, Vec<f32>), EppoError> {
+        let input = round.input();
+        let ctg_now = acting.observe(&input);
+        self.times
+            .time(|t| &mut t.tokens, || acting.write_tokens(&input));
+        let (net, spec, rng) = (self.net, self.spec, &mut *self.rng);
+        let (mut net_actions, mut env_actions) = self.times.time(
+            |t| &mut t.acting,
+            || -> Result<_, EppoError> {
+                let policy = acting.forward(net)?;
+                Ok(sample_actions(&policy, spec, eps, false, rng))
+            },
+        )?;
+        if self.cfg.goal.scripted_first_episode {
+            let first_episode: Vec<bool> = (0..venv.len())
+                .map(|i| round.active[i] && round.trajs[i].episode_returns.is_empty())
                 .collect();
-            let (mut net_actions, mut env_actions) = self.times.time(
-                |t| &mut t.acting,
-                || -> Result<_, EppoError> {
-                    let policy = acting.forward(net)?;
-                    Ok(sample_actions(&policy, spec, &eps, false, rng))
-                },
-            )?;
-            if self.cfg.goal.scripted_first_episode {
-                let first_episode: Vec<bool> = (0..n)
-                    .map(|i| active[i] && trajs[i].episode_returns.is_empty())
-                    .collect();
-                script_actions(
-                    venv,
-                    self.spec,
-                    &first_episode,
-                    &mut net_actions,
-                    &mut env_actions,
-                );
-            }
-            for i in (0..n).filter(|&i| active[i]) {
-                let t = &mut trajs[i];
-                t.obs.extend_from_slice(&obs[i * od..(i + 1) * od]);
-                t.actions
-                    .extend_from_slice(&net_actions[i * a..(i + 1) * a]);
-                if let EnvActions::Discrete(idx) = &env_actions {
-                    t.action_idx.push(idx[i] as i64);
-                }
-                t.ctg.push(ctg_now[i]);
-                t.start.push(start[i]);
-                t.episode.push(t.episode_returns.len() as u32);
-            }
-            let outcomes = self.times.time(
-                |t| &mut t.env_step,
-                || -> Result<_, EppoError> {
-                    Ok(match &env_actions {
-                        EnvActions::Discrete(idx) => venv.step(VecAction::Discrete(idx))?,
-                        EnvActions::Continuous(v) => venv.step(VecAction::Continuous(v))?,
-                    }
-                    .to_vec())
-                },
-            )?;
-            obs.copy_from_slice(venv.observations());
-            hide_slots(&mut obs, od, slots, &hidden);
-            for i in 0..n {
-                let o = outcomes[i];
-                // Where the action led: the final observation when it ended
-                // the episode (the auto-reset already replaced `obs`).
-                let reached = if o.done() {
-                    venv.final_observations()
-                } else {
-                    venv.observations()
-                };
-                let arrived_row = &mut arrived[i * od..(i + 1) * od];
-                arrived_row.copy_from_slice(&reached[i * od..(i + 1) * od]);
-                if hidden[i] {
-                    arrived_row[od - slots..].fill(0.0);
-                }
-                reward[i] = o.reward;
-                cost[i] = o.cost;
-                start[i] = o.done();
-                prev_action[i * a..(i + 1) * a].copy_from_slice(&net_actions[i * a..(i + 1) * a]);
-                if !active[i] {
-                    continue;
-                }
-                steps += 1;
-                let t = &mut trajs[i];
-                t.next_obs.extend_from_slice(&arrived[i * od..(i + 1) * od]);
-                t.rewards.push(o.reward);
-                t.costs.push(o.cost);
-                // Kept apart all the way into the TD targets (see make_batch).
-                t.terminated.push(o.terminated);
-                t.truncated.push(o.truncated);
-                ep_ret[i] += o.reward;
-                ep_cost[i] += o.cost;
-                if o.done() {
-                    t.episode_returns.push(ep_ret[i]);
-                    t.episode_costs.push(ep_cost[i]);
-                    t.episode_success.push(o.terminated);
-                    ep_ret[i] = 0.0;
-                    ep_cost[i] = 0.0;
-                    if t.episode_returns.len() == ks[i] {
-                        active[i] = false;
-                    }
-                }
-            }
+            script_actions(
+                venv,
+                self.spec,
+                &first_episode,
+                &mut net_actions,
+                &mut env_actions,
+            );
         }
-        *self.env_steps += steps;
-        let radii = (
-            self.cfg.novelty.novelty_cell,
-            crate::signals::repeat_radius(self.env),
-        );
-        let mut stats = round_stats(&trajs, steps, self.spec, radii);
-        if self.cfg.goal.goal_in_observation {
-            stats.goal_slots = GoalSlotStats::of(&trajs, &hidden);
-        }
-        Ok((trajs, stats))
+        Ok((net_actions, env_actions, ctg_now))
+    }
+
+    /// Steps every environment with its action.
+    fn step_envs(
+        &mut self,
+        venv: &mut VecEnv,
+        env_actions: &EnvActions,
+    ) -> Result<Vec<StepOutcome>, EppoError> {
+        self.times.time(
+            |t| &mut t.env_step,
+            || -> Result<_, EppoError> {
+                Ok(match env_actions {
+                    EnvActions::Discrete(idx) => venv.step(VecAction::Discrete(idx))?,
+                    EnvActions::Continuous(v) => venv.step(VecAction::Continuous(v))?,
+                }
+                .to_vec())
+            },
+        )
     }
 
     /// Draws one round's tasks (fresh centre-oriented, or from the pool),
@@ -517,6 +501,119 @@ impl Collector<'_> {
         self.times
             .time(|t| &mut t.env_step, || venv.reset(&seeds))?;
         Ok((budgets, ks, eps_scale))
+    }
+}
+
+/// One collection round under way: its trajectories as they grow, which
+/// still collect, and the step input each environment gives the policy next.
+struct InRound {
+    trajs: Vec<Trajectory>,
+    /// Fewer than its K episodes finished.
+    active: Vec<bool>,
+    /// Its goal slots blanked throughout.
+    hidden: Vec<bool>,
+    ks: Vec<usize>,
+    /// Observation width, action width, goal slots at the observation's end.
+    od: usize,
+    a: usize,
+    slots: usize,
+    obs: Vec<f32>,
+    arrived: Vec<f32>,
+    prev_action: Vec<f32>,
+    reward: Vec<f32>,
+    cost: Vec<f32>,
+    start: Vec<bool>,
+    /// Return and cost of each running episode so far.
+    ep_ret: Vec<f32>,
+    ep_cost: Vec<f32>,
+    /// Environment steps of the active trajectories.
+    steps: u64,
+}
+
+impl InRound {
+    /// The policy's input at the next step.
+    fn input(&self) -> StepInput<'_> {
+        StepInput {
+            obs: &self.obs,
+            arrived_obs: &self.arrived,
+            prev_action: &self.prev_action,
+            reward: &self.reward,
+            cost: &self.cost,
+            episode_start: &self.start,
+        }
+    }
+
+    /// Appends the step's input and action to each active trajectory.
+    fn record_inputs(&mut self, ctg_now: &[f32], net_actions: &[f32], env_actions: &EnvActions) {
+        let (od, a) = (self.od, self.a);
+        for i in (0..self.trajs.len()).filter(|&i| self.active[i]) {
+            let t = &mut self.trajs[i];
+            t.obs.extend_from_slice(&self.obs[i * od..(i + 1) * od]);
+            t.actions
+                .extend_from_slice(&net_actions[i * a..(i + 1) * a]);
+            if let EnvActions::Discrete(idx) = env_actions {
+                t.action_idx.push(idx[i] as i64);
+            }
+            t.ctg.push(ctg_now[i]);
+            t.start.push(self.start[i]);
+            t.episode.push(t.episode_returns.len() as u32);
+        }
+    }
+
+    /// Takes the step's outcomes: the next input of every environment, and
+    /// what each active trajectory received.
+    fn record_outcomes(&mut self, venv: &VecEnv, outcomes: &[StepOutcome], net_actions: &[f32]) {
+        let (od, a, slots) = (self.od, self.a, self.slots);
+        self.obs.copy_from_slice(venv.observations());
+        hide_slots(&mut self.obs, od, slots, &self.hidden);
+        for (i, &o) in outcomes.iter().enumerate() {
+            // Where the action led: the final observation when it ended
+            // the episode (the auto-reset already replaced `obs`).
+            let reached = if o.done() {
+                venv.final_observations()
+            } else {
+                venv.observations()
+            };
+            let arrived_row = &mut self.arrived[i * od..(i + 1) * od];
+            arrived_row.copy_from_slice(&reached[i * od..(i + 1) * od]);
+            if self.hidden[i] {
+                arrived_row[od - slots..].fill(0.0);
+            }
+            self.reward[i] = o.reward;
+            self.cost[i] = o.cost;
+            self.start[i] = o.done();
+            self.prev_action[i * a..(i + 1) * a].copy_from_slice(&net_actions[i * a..(i + 1) * a]);
+            if self.active[i] {
+                self.extend_trajectory(i, o);
+            }
+        }
+    }
+
+    /// Appends outcome `o` to trajectory `i`, closing its episode when the
+    /// step ended one, and the trajectory after its K episodes.
+    fn extend_trajectory(&mut self, i: usize, o: StepOutcome) {
+        let od = self.od;
+        self.steps += 1;
+        let t = &mut self.trajs[i];
+        t.next_obs
+            .extend_from_slice(&self.arrived[i * od..(i + 1) * od]);
+        t.rewards.push(o.reward);
+        t.costs.push(o.cost);
+        // Kept apart all the way into the TD targets (see make_batch).
+        t.terminated.push(o.terminated);
+        t.truncated.push(o.truncated);
+        self.ep_ret[i] += o.reward;
+        self.ep_cost[i] += o.cost;
+        if o.done() {
+            t.episode_returns.push(self.ep_ret[i]);
+            t.episode_costs.push(self.ep_cost[i]);
+            t.episode_success.push(o.terminated);
+            self.ep_ret[i] = 0.0;
+            self.ep_cost[i] = 0.0;
+            if t.episode_returns.len() == self.ks[i] {
+                self.active[i] = false;
+            }
+        }
     }
 }
 

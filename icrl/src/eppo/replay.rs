@@ -491,27 +491,72 @@ pub(super) fn make_batch(
 ) -> Batch {
     let seq = cfg.model.transformer.max_len as usize;
     let windows = sample_windows(trajs, seq, rng);
-    let b = trajs.len();
     let l = windows.iter().map(|w| w.1).max().unwrap_or(1);
-    let (dtok, a) = (spec.token_dim(), spec.act_flat());
-    let mut tokens = Vec::with_capacity(b * l * dtok);
-    let mut acts_f = Vec::with_capacity(b * l * a);
-    let mut acts_i = Vec::with_capacity(b * l);
-    let mut rew = vec![0f32; b * l];
-    let mut novelty_rew = vec![0f32; b * l];
-    let mut cost = vec![0f32; b * l];
-    let mut viol = vec![0f32; b * l];
-    let mut episode = vec![0i64; b * l];
-    let mut ctg = vec![0f32; b * l];
-    let mut valid = vec![0f32; b * l];
-    let mut td_valid = vec![0f32; b * l];
-    let mut boot = vec![0f32; b * l];
-    let mut cost_boot = vec![0f32; b * l];
-    let mut goal_known = vec![0f32; b * l];
-    let zeros_a = vec![0f32; a];
-    let zeros_o = vec![0f32; spec.obs_dim];
-    let over_budget = shaping.over_budget();
-    for (j, (t, &(s, len))) in trajs.iter().zip(&windows).enumerate() {
+    let mut columns = Columns::new(trajs.len(), l, spec);
+    for (j, (t, &window)) in trajs.iter().zip(&windows).enumerate() {
+        columns.push_window(j * l, t, window, l, cfg, spec, shaping);
+    }
+    columns.into_batch(trajs, l, cfg, spec, device)
+}
+
+/// A batch's columns as [`make_batch`] fills them, window by window: tokens
+/// and actions pushed step by step, the rest (B*L,) at `window * L + step`.
+struct Columns {
+    tokens: Vec<f32>,
+    acts_f: Vec<f32>,
+    acts_i: Vec<i64>,
+    rew: Vec<f32>,
+    novelty_rew: Vec<f32>,
+    cost: Vec<f32>,
+    viol: Vec<f32>,
+    episode: Vec<i64>,
+    ctg: Vec<f32>,
+    valid: Vec<f32>,
+    td_valid: Vec<f32>,
+    boot: Vec<f32>,
+    cost_boot: Vec<f32>,
+    goal_known: Vec<f32>,
+    zeros_a: Vec<f32>,
+    zeros_o: Vec<f32>,
+}
+
+impl Columns {
+    /// Room for `b` windows of `l` steps.
+    fn new(b: usize, l: usize, spec: &NetSpec) -> Self {
+        let (dtok, a) = (spec.token_dim(), spec.act_flat());
+        Columns {
+            tokens: Vec::with_capacity(b * l * dtok),
+            acts_f: Vec::with_capacity(b * l * a),
+            acts_i: Vec::with_capacity(b * l),
+            rew: vec![0f32; b * l],
+            novelty_rew: vec![0f32; b * l],
+            cost: vec![0f32; b * l],
+            viol: vec![0f32; b * l],
+            episode: vec![0i64; b * l],
+            ctg: vec![0f32; b * l],
+            valid: vec![0f32; b * l],
+            td_valid: vec![0f32; b * l],
+            boot: vec![0f32; b * l],
+            cost_boot: vec![0f32; b * l],
+            goal_known: vec![0f32; b * l],
+            zeros_a: vec![0f32; a],
+            zeros_o: vec![0f32; spec.obs_dim],
+        }
+    }
+
+    /// The window `(s, len)` of `t`, padded to `l` steps, at row `k0`: each
+    /// step's token and action, the critics' rewards, labels and TD masks.
+    #[allow(clippy::too_many_arguments)]
+    fn push_window(
+        &mut self,
+        k0: usize,
+        t: &Trajectory,
+        (s, len): (usize, usize),
+        l: usize,
+        cfg: &EppoConfig,
+        spec: &NetSpec,
+        shaping: Shaping,
+    ) {
         let violated: Vec<bool> = t.episodes_over_budget().collect();
         let novel = if shaping.novelty > 0.0 {
             novel_arrivals(t, spec.obs_dim, cfg.novelty.novelty_cell)
@@ -525,144 +570,188 @@ pub(super) fn make_batch(
         let mut found =
             cfg.goal.goal_in_observation && t.obs.get(..spec.obs_dim).is_some_and(GoalShown::shows);
         for i in 0..l {
-            let k = j * l + i;
+            let k = k0 + i;
             if i >= len {
-                // Padding: a zero token after the end; masked out everywhere.
-                push_token(
-                    spec,
-                    cfg,
-                    &mut tokens,
-                    &zeros_o,
-                    &zeros_o,
-                    &zeros_a,
-                    0.0,
-                    0.0,
-                    0.0,
-                    false,
-                );
-                acts_f.extend_from_slice(&zeros_a);
-                acts_i.push(0);
+                self.push_padding(spec, cfg);
                 continue;
             }
             let step = s + i;
-            let obs = &t.obs[step * spec.obs_dim..(step + 1) * spec.obs_dim];
-            let od = spec.obs_dim;
-            let (arrived, prev, r, c) = if step == 0 {
-                (&zeros_o[..], &zeros_a[..], 0.0, 0.0)
-            } else {
-                (
-                    &t.next_obs[(step - 1) * od..step * od],
-                    &t.actions[(step - 1) * a..step * a],
-                    t.rewards[step - 1],
-                    t.costs[step - 1],
-                )
-            };
-            push_token(
-                spec,
-                cfg,
-                &mut tokens,
-                obs,
-                arrived,
-                prev,
-                r,
-                c,
-                t.ctg[step],
-                t.start[step],
-            );
-            acts_f.extend_from_slice(&t.actions[step * a..(step + 1) * a]);
-            acts_i.push(t.action_idx.get(step).copied().unwrap_or(0));
-            let dense = if cfg.goal.dense_reward_after_goal && !found {
-                0.0
-            } else {
-                dense_reward(t, step, spec, cfg)
-            };
-            let budget_spent = t.budget_spent_after(step);
-            let share = match cfg.novelty.novelty_budget {
-                NoveltyBudget::RemainingShare => (t.ctg[step] / t.budget).clamp(0.0, 1.0),
-                NoveltyBudget::Always | NoveltyBudget::WithinBudget => 1.0,
-            };
-            let novelty = shaping.novelty * novel[step] * share;
-            // The step's reward with `bonus` for novelty (nothing of it once
-            // the episode's budget is spent, unless the price leaves it).
-            let priced = |bonus: f32| {
-                let shaped = t.rewards[step] + dense + bonus;
-                match over_budget {
-                    Some(o) if budget_spent => {
-                        let kept = if o.pays_novelty {
-                            shaped
-                        } else {
-                            shaped - bonus
-                        };
-                        o.replaced_reward.unwrap_or(kept) - o.cost_price * t.costs[step]
-                    }
-                    _ => shaped,
-                }
-            };
+            self.push_step(t, step, spec, cfg);
             let scale = cfg.targets.reward_scale as f32;
-            if cfg.novelty.novelty_critic {
-                let paid = match over_budget {
-                    Some(o) if budget_spent && (o.replaced_reward.is_some() || !o.pays_novelty) => {
-                        0.0
-                    }
-                    _ => novelty,
-                };
-                rew[k] = priced(0.0) * scale;
-                novelty_rew[k] = paid * scale;
-            } else {
-                rew[k] = priced(novelty) * scale;
-            }
-            cost[k] = t.costs[step];
-            ctg[k] = t.ctg[step];
-            episode[k] = i64::from(t.episode[step]);
-            viol[k] = if violated[t.episode[step] as usize] {
+            (self.rew[k], self.novelty_rew[k]) =
+                critic_rewards(t, step, novel[step], found, spec, cfg, shaping);
+            self.cost[k] = t.costs[step];
+            self.ctg[k] = t.ctg[step];
+            self.episode[k] = i64::from(t.episode[step]);
+            self.viol[k] = if violated[t.episode[step] as usize] {
                 1.0
             } else {
                 0.0
             };
-            valid[k] = 1.0;
-            goal_known[k] = if found { 1.0 } else { 0.0 };
+            self.valid[k] = 1.0;
+            self.goal_known[k] = if found { 1.0 } else { 0.0 };
             found |= t.terminated[step];
             let (has_target, mut bootstraps, cost_bootstraps) = td_masks(cfg, t, step, i + 1 < len);
             if let Some((end_reward, ends)) = &value_ends
                 && ends[step]
             {
-                rew[k] += end_reward * scale;
+                self.rew[k] += end_reward * scale;
                 bootstraps = false;
             }
-            td_valid[k] = if has_target { 1.0 } else { 0.0 };
-            boot[k] = if bootstraps { 1.0 } else { 0.0 };
-            cost_boot[k] = if cost_bootstraps { 1.0 } else { 0.0 };
+            self.td_valid[k] = if has_target { 1.0 } else { 0.0 };
+            self.boot[k] = if bootstraps { 1.0 } else { 0.0 };
+            self.cost_boot[k] = if cost_bootstraps { 1.0 } else { 0.0 };
         }
     }
-    let (bi, li) = (b as i64, l as i64);
-    let f = |v: &[f32]| Tensor::from_slice(v).view([bi, li]).to_device(device); // (B*L,) -> (B, L)
-    let actions = match spec.n_actions {
-        Some(_) => Tensor::from_slice(&acts_i).view([bi, li]).to_device(device), // (B, L)
-        None => Tensor::from_slice(&acts_f)
-            .view([bi, li, a as i64])
-            .to_device(device), // (B, L, A)
+
+    /// Padding: a zero token after a window's end; masked out everywhere.
+    fn push_padding(&mut self, spec: &NetSpec, cfg: &EppoConfig) {
+        push_token(
+            spec,
+            cfg,
+            &mut self.tokens,
+            &self.zeros_o,
+            &self.zeros_o,
+            &self.zeros_a,
+            0.0,
+            0.0,
+            0.0,
+            false,
+        );
+        self.acts_f.extend_from_slice(&self.zeros_a);
+        self.acts_i.push(0);
+    }
+
+    /// The token of step `step` of `t` (what arrived before it: zeros at
+    /// the trajectory's start) and the action taken at it.
+    fn push_step(&mut self, t: &Trajectory, step: usize, spec: &NetSpec, cfg: &EppoConfig) {
+        let (od, a) = (spec.obs_dim, spec.act_flat());
+        let obs = &t.obs[step * od..(step + 1) * od];
+        let (arrived, prev, r, c) = if step == 0 {
+            (&self.zeros_o[..], &self.zeros_a[..], 0.0, 0.0)
+        } else {
+            (
+                &t.next_obs[(step - 1) * od..step * od],
+                &t.actions[(step - 1) * a..step * a],
+                t.rewards[step - 1],
+                t.costs[step - 1],
+            )
+        };
+        push_token(
+            spec,
+            cfg,
+            &mut self.tokens,
+            obs,
+            arrived,
+            prev,
+            r,
+            c,
+            t.ctg[step],
+            t.start[step],
+        );
+        self.acts_f
+            .extend_from_slice(&t.actions[step * a..(step + 1) * a]);
+        self.acts_i
+            .push(t.action_idx.get(step).copied().unwrap_or(0));
+    }
+
+    /// The columns as tensors on `device`: (B, L), tokens (B, L, token_dim),
+    /// continuous actions (B, L, A), goals (B, 2).
+    fn into_batch(
+        self,
+        trajs: &[&Trajectory],
+        l: usize,
+        cfg: &EppoConfig,
+        spec: &NetSpec,
+        device: Device,
+    ) -> Batch {
+        let (dtok, a) = (spec.token_dim(), spec.act_flat());
+        let (bi, li) = (trajs.len() as i64, l as i64);
+        let f = |v: &[f32]| Tensor::from_slice(v).view([bi, li]).to_device(device); // (B*L,) -> (B, L)
+        let actions = match spec.n_actions {
+            Some(_) => Tensor::from_slice(&self.acts_i)
+                .view([bi, li])
+                .to_device(device), // (B, L)
+            None => Tensor::from_slice(&self.acts_f)
+                .view([bi, li, a as i64])
+                .to_device(device), // (B, L, A)
+        };
+        Batch {
+            tokens: Tensor::from_slice(&self.tokens)
+                .view([bi, li, dtok as i64])
+                .to_device(device), // (B, L, token_dim)
+            actions,
+            rewards: f(&self.rew),
+            costs: f(&self.cost),
+            violated: f(&self.viol),
+            episode: Tensor::from_slice(&self.episode)
+                .view([bi, li])
+                .to_device(device),
+            ctg: f(&self.ctg),
+            valid: f(&self.valid),
+            td_valid: f(&self.td_valid),
+            bootstrap: f(&self.boot),
+            cost_bootstrap: f(&self.cost_boot),
+            goal: Tensor::from_slice(&trajs.iter().flat_map(|t| t.goal).collect::<Vec<f32>>())
+                .view([bi, 2])
+                .to_device(device),
+            goal_known: f(&self.goal_known),
+            novelty_rewards: cfg.novelty.novelty_critic.then(|| f(&self.novelty_rew)),
+        }
+    }
+}
+
+/// The critics' reward for step `step` of `t`, and the novelty critic's (0
+/// without one), both times `reward_scale`: the collected reward, the dense
+/// reward (once the goal is `found`, with `dense_reward_after_goal`) and the
+/// novelty bonus (`novel`: the step's arrival indicator), priced as
+/// `shaping` says once the episode's budget is spent.
+fn critic_rewards(
+    t: &Trajectory,
+    step: usize,
+    novel: f32,
+    found: bool,
+    spec: &NetSpec,
+    cfg: &EppoConfig,
+    shaping: Shaping,
+) -> (f32, f32) {
+    let over_budget = shaping.over_budget();
+    let dense = if cfg.goal.dense_reward_after_goal && !found {
+        0.0
+    } else {
+        dense_reward(t, step, spec, cfg)
     };
-    Batch {
-        tokens: Tensor::from_slice(&tokens)
-            .view([bi, li, dtok as i64])
-            .to_device(device), // (B, L, token_dim)
-        actions,
-        rewards: f(&rew),
-        costs: f(&cost),
-        violated: f(&viol),
-        episode: Tensor::from_slice(&episode)
-            .view([bi, li])
-            .to_device(device),
-        ctg: f(&ctg),
-        valid: f(&valid),
-        td_valid: f(&td_valid),
-        bootstrap: f(&boot),
-        cost_bootstrap: f(&cost_boot),
-        goal: Tensor::from_slice(&trajs.iter().flat_map(|t| t.goal).collect::<Vec<f32>>())
-            .view([bi, 2])
-            .to_device(device),
-        goal_known: f(&goal_known),
-        novelty_rewards: cfg.novelty.novelty_critic.then(|| f(&novelty_rew)),
+    let budget_spent = t.budget_spent_after(step);
+    let share = match cfg.novelty.novelty_budget {
+        NoveltyBudget::RemainingShare => (t.ctg[step] / t.budget).clamp(0.0, 1.0),
+        NoveltyBudget::Always | NoveltyBudget::WithinBudget => 1.0,
+    };
+    let novelty = shaping.novelty * novel * share;
+    // The step's reward with `bonus` for novelty (nothing of it once
+    // the episode's budget is spent, unless the price leaves it).
+    let priced = |bonus: f32| {
+        let shaped = t.rewards[step] + dense + bonus;
+        match over_budget {
+            Some(o) if budget_spent => {
+                let kept = if o.pays_novelty {
+                    shaped
+                } else {
+                    shaped - bonus
+                };
+                o.replaced_reward.unwrap_or(kept) - o.cost_price * t.costs[step]
+            }
+            _ => shaped,
+        }
+    };
+    let scale = cfg.targets.reward_scale as f32;
+    if cfg.novelty.novelty_critic {
+        let paid = match over_budget {
+            Some(o) if budget_spent && (o.replaced_reward.is_some() || !o.pays_novelty) => 0.0,
+            _ => novelty,
+        };
+        (priced(0.0) * scale, paid * scale)
+    } else {
+        (priced(novelty) * scale, 0.0)
     }
 }
 
