@@ -79,7 +79,47 @@ pub fn merge(
     shards: &[PathBuf],
     existing: Existing,
 ) -> Result<MergeReport, HistoryError> {
-    let refuse = |p: &Path, what: String| HistoryError::new(p, Problem::Invalid(what));
+    let base = check_out(out, shards, existing)?;
+    let mut parts = shards
+        .iter()
+        .map(|path| read_part(path, &base))
+        .collect::<Result<Vec<_>, _>>()?;
+    check_one_grid(&parts)?;
+    parts.sort_by_key(|p| p.info.shard.map_or(0, |s| s.index));
+    check_every_part_once(out, &parts)?;
+
+    let info = DatasetInfo {
+        shard: None,
+        config: config_without(&parts[0].info.config, &["shard"]),
+        ..parts[0].info.clone()
+    };
+    let steps: usize = parts.iter().map(|p| p.steps).sum();
+    let n_histories: usize = parts.iter().map(|p| p.histories).sum();
+    let err = |e: hdf5::Error| HistoryError::new(out, Problem::Unreadable(e.to_string()));
+    output::write_file(out, existing, |tmp| {
+        write_views(tmp, &info, &parts, steps, n_histories)
+            .and_then(|()| {
+                histories::seal(tmp).map_err(|e| hdf5::Error::from(e.to_string().as_str()))
+            })
+            .map_err(err)
+    })?;
+    Ok(MergeReport {
+        out: out.to_path_buf(),
+        shards: parts.len(),
+        histories: n_histories,
+        steps,
+        bytes: std::fs::metadata(out).map_or(0, |m| m.len()),
+    })
+}
+
+fn refuse(p: &Path, what: String) -> HistoryError {
+    HistoryError::new(p, Problem::Invalid(what))
+}
+
+/// Checks that `out` can receive the merged file and is none of the
+/// `shards`, and that there are shards; returns `out`'s folder, resolved,
+/// which the shards' names are relative to.
+fn check_out(out: &Path, shards: &[PathBuf], existing: Existing) -> Result<PathBuf, HistoryError> {
     // Whatever `--force` says: writing the view over a shard would replace
     // the shard's histories with a view of themselves.
     // The same file by any path (a link, another spelling): device and inode.
@@ -107,61 +147,65 @@ pub fn merge(
         .parent()
         .filter(|p| !p.as_os_str().is_empty())
         .unwrap_or(Path::new("."));
-    let base = base
-        .canonicalize()
-        .map_err(|e| HistoryError::new(out, Problem::Output(e.to_string())))?;
+    base.canonicalize()
+        .map_err(|e| HistoryError::new(out, Problem::Output(e.to_string())))
+}
 
-    let mut parts = Vec::with_capacity(shards.len());
-    for path in shards {
-        let sha256 = verify_seal(path)
-            .map_err(|p| HistoryError::new(path, p))?
-            .ok_or_else(|| {
-                refuse(
-                    path,
-                    "it has no icrl checksum, so a merged file could not tell if it changed; \
-                     make shards with `icrl dataset --shard I/N`"
-                        .into(),
-                )
-            })?;
-        let file = read_histories(path, None)?;
-        let Some(shard) = file.info.shard else {
-            return Err(refuse(
+/// Reads and checks one shard: its checksum (recorded for the merged file),
+/// that it is a shard, and that it lies inside `base`.
+fn read_part(path: &Path, base: &Path) -> Result<Part, HistoryError> {
+    let sha256 = verify_seal(path)
+        .map_err(|p| HistoryError::new(path, p))?
+        .ok_or_else(|| {
+            refuse(
                 path,
-                "it is not a shard (no shard_index): merge the files of `icrl dataset --shard I/N`"
+                "it has no icrl checksum, so a merged file could not tell if it changed; \
+                 make shards with `icrl dataset --shard I/N`"
                     .into(),
-            ));
-        };
-        let relative = path
-            .canonicalize()
-            .ok()
-            .and_then(|p| p.strip_prefix(&base).ok().map(Path::to_path_buf))
-            .ok_or_else(|| {
-                refuse(
-                    path,
-                    format!(
-                        "it is not inside {}, the merged file's folder; write the merged file \
-                         beside the shards or in a folder above them",
-                        base.display()
-                    ),
-                )
-            })?;
-        parts.push(Part {
-            path: path.clone(),
-            record: ShardRecord {
-                file: relative.to_string_lossy().into_owned(),
-                sha256,
-            },
-            steps: file.total_steps(),
-            histories: file.histories.len(),
-            obstacles: file.histories[0].task.obstacles.len(),
-            info: DatasetInfo {
-                shard: Some(shard),
-                ..file.info
-            },
-        });
-    }
+            )
+        })?;
+    let file = read_histories(path, None)?;
+    let Some(shard) = file.info.shard else {
+        return Err(refuse(
+            path,
+            "it is not a shard (no shard_index): merge the files of `icrl dataset --shard I/N`"
+                .into(),
+        ));
+    };
+    let relative = path
+        .canonicalize()
+        .ok()
+        .and_then(|p| p.strip_prefix(base).ok().map(Path::to_path_buf))
+        .ok_or_else(|| {
+            refuse(
+                path,
+                format!(
+                    "it is not inside {}, the merged file's folder; write the merged file \
+                     beside the shards or in a folder above them",
+                    base.display()
+                ),
+            )
+        })?;
+    Ok(Part {
+        path: path.to_path_buf(),
+        record: ShardRecord {
+            file: relative.to_string_lossy().into_owned(),
+            sha256,
+        },
+        steps: file.total_steps(),
+        histories: file.histories.len(),
+        obstacles: file.histories[0].task.obstacles.len(),
+        info: DatasetInfo {
+            shard: Some(shard),
+            ..file.info
+        },
+    })
+}
 
-    // Every shard must be a part of the first one's grid.
+/// Refuses shards that are not parts of the first one's grid: another
+/// environment, macro action, seed, sizes, grid, obstacles or generating
+/// configuration.
+fn check_one_grid(parts: &[Part]) -> Result<(), HistoryError> {
     let first = &parts[0];
     for p in &parts[1..] {
         let (a, b) = (&first.info, &p.info);
@@ -206,7 +250,12 @@ pub fn merge(
             ));
         }
     }
-    parts.sort_by_key(|p| p.info.shard.map_or(0, |s| s.index));
+    Ok(())
+}
+
+/// Refuses `parts` (sorted by shard index) where a part comes twice or is
+/// missing.
+fn check_every_part_once(out: &Path, parts: &[Part]) -> Result<(), HistoryError> {
     let count = parts[0].info.shard.map_or(1, |s| s.count);
     for w in parts.windows(2) {
         if w[0].info.shard == w[1].info.shard {
@@ -237,29 +286,7 @@ pub fn merge(
             ),
         ));
     }
-
-    let info = DatasetInfo {
-        shard: None,
-        config: config_without(&parts[0].info.config, &["shard"]),
-        ..parts[0].info.clone()
-    };
-    let steps: usize = parts.iter().map(|p| p.steps).sum();
-    let n_histories: usize = parts.iter().map(|p| p.histories).sum();
-    let err = |e: hdf5::Error| HistoryError::new(out, Problem::Unreadable(e.to_string()));
-    output::write_file(out, existing, |tmp| {
-        write_views(tmp, &info, &parts, steps, n_histories)
-            .and_then(|()| {
-                histories::seal(tmp).map_err(|e| hdf5::Error::from(e.to_string().as_str()))
-            })
-            .map_err(err)
-    })?;
-    Ok(MergeReport {
-        out: out.to_path_buf(),
-        shards: parts.len(),
-        histories: n_histories,
-        steps,
-        bytes: std::fs::metadata(out).map_or(0, |m| m.len()),
-    })
+    Ok(())
 }
 
 /// The merged file's datasets, each a virtual dataset whose rows are the

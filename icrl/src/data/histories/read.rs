@@ -54,102 +54,188 @@ pub fn read_histories(
         );
     }
     let f = hdf5::File::open(path).map_err(|e| err(Problem::Unreadable(e.to_string())))?;
-    let malformed = |what: String| err(Problem::Malformed(what));
     // A merged file: its shards are checked before libhdf5 reads through to them.
     verify_shards(&f, path)?;
 
     let info = read_info(&f, path, expected_env)?;
+    let arrays = Arrays::read(&f, path, &info)?;
+    let histories = arrays.split(path, &info)?;
+    Ok(HistoryFile { info, histories })
+}
 
-    // Each dataset with the shape it must have (None: any length, checked below).
-    let read = |name: &str, tail: &[usize]| -> Result<(Vec<f32>, usize), HistoryError> {
-        let (v, shape) =
-            get::<f32>(&f, name).map_err(|e| malformed(format!("dataset {name}: {e}")))?;
-        if shape.len() != 1 + tail.len() || shape[1..] != *tail {
+/// A file's datasets as read, each with the shape it must have: per step
+/// (`n` rows), per history (`h` rows), `n_obstacles` obstacles per task.
+struct Arrays {
+    observations: Vec<f32>,
+    next_observations: Vec<f32>,
+    actions: Vec<f32>,
+    rewards: Vec<f32>,
+    costs: Vec<f32>,
+    terminals: Vec<f32>,
+    timeouts: Vec<f32>,
+    cost_limit: Vec<f32>,
+    history_id: Vec<i64>,
+    goals: Vec<i64>,
+    obstacles: Vec<i64>,
+    n: usize,
+    h: usize,
+    n_obstacles: usize,
+}
+
+impl Arrays {
+    /// Reads every dataset, checking its shape against the attributes and
+    /// the others: as many rows per step, histories for the grid part the
+    /// file holds.
+    fn read(f: &hdf5::File, path: &Path, info: &DatasetInfo) -> Result<Self, HistoryError> {
+        let err = |p| HistoryError::new(path, p);
+        let malformed = |what: String| err(Problem::Malformed(what));
+        // Each dataset with the shape it must have (None: any length, checked below).
+        let read = |name: &str, tail: &[usize]| -> Result<(Vec<f32>, usize), HistoryError> {
+            let (v, shape) =
+                get::<f32>(f, name).map_err(|e| malformed(format!("dataset {name}: {e}")))?;
+            if shape.len() != 1 + tail.len() || shape[1..] != *tail {
+                return Err(malformed(format!(
+                    "dataset {name} has shape {shape:?}, expected (rows, {tail:?})"
+                )));
+            }
+            Ok((v, shape[0]))
+        };
+        let (observations, n_obs) = read("observations", &[info.obs_dim])?;
+        let (next_observations, n_next) = read("next_observations", &[info.obs_dim])?;
+        let (actions, n_act) = read("actions", &[info.action_dim])?;
+        let (rewards, n) = read("rewards", &[])?;
+        let (costs, n_costs) = read("costs", &[])?;
+        let (terminals, n_term) = read("terminals", &[])?;
+        let (timeouts, n_time) = read("timeouts", &[])?;
+        let (cost_limit, h) = read("cost_limit", &[])?;
+        let (history_id, id_shape) = get::<i64>(f, "history_id")
+            .map_err(|e| malformed(format!("dataset history_id: {e}")))?;
+        let (goals, goal_shape) =
+            get::<i64>(f, "task_goal").map_err(|e| malformed(format!("dataset task_goal: {e}")))?;
+        let (obstacles, obstacle_shape) = get::<i64>(f, "task_obstacles")
+            .map_err(|e| malformed(format!("dataset task_obstacles: {e}")))?;
+
+        for (name, len) in [
+            ("observations", n_obs),
+            ("next_observations", n_next),
+            ("actions", n_act),
+            ("costs", n_costs),
+            ("terminals", n_term),
+            ("timeouts", n_time),
+            ("history_id", id_shape.first().copied().unwrap_or(0)),
+        ] {
+            if len != n {
+                return Err(malformed(format!(
+                    "dataset {name} has {len} rows, rewards has {n}"
+                )));
+            }
+        }
+        if h == 0 {
+            return Err(err(Problem::Empty("the file holds no histories".into())));
+        }
+        let n_obstacles = obstacle_shape.get(1).copied().unwrap_or(0);
+        if goal_shape != [h, 2] || obstacle_shape != [h, n_obstacles, 2] {
             return Err(malformed(format!(
-                "dataset {name} has shape {shape:?}, expected (rows, {tail:?})"
+                "task arrays have shapes {goal_shape:?} and {obstacle_shape:?}, expected [{h}, 2] and [{h}, n, 2]"
             )));
         }
-        Ok((v, shape[0]))
-    };
-    let (observations, n_obs) = read("observations", &[info.obs_dim])?;
-    let (next_observations, n_next) = read("next_observations", &[info.obs_dim])?;
-    let (actions, n_act) = read("actions", &[info.action_dim])?;
-    let (rewards, n) = read("rewards", &[])?;
-    let (costs, n_costs) = read("costs", &[])?;
-    let (terminals, n_term) = read("terminals", &[])?;
-    let (timeouts, n_time) = read("timeouts", &[])?;
-    let (cost_limit, h) = read("cost_limit", &[])?;
-    let (history_id, id_shape) =
-        get::<i64>(&f, "history_id").map_err(|e| malformed(format!("dataset history_id: {e}")))?;
-    let (goals, goal_shape) =
-        get::<i64>(&f, "task_goal").map_err(|e| malformed(format!("dataset task_goal: {e}")))?;
-    let (obstacles, obstacle_shape) = get::<i64>(&f, "task_obstacles")
-        .map_err(|e| malformed(format!("dataset task_obstacles: {e}")))?;
 
-    for (name, len) in [
-        ("observations", n_obs),
-        ("next_observations", n_next),
-        ("actions", n_act),
-        ("costs", n_costs),
-        ("terminals", n_term),
-        ("timeouts", n_time),
-        ("history_id", id_shape.first().copied().unwrap_or(0)),
-    ] {
-        if len != n {
+        let ids = info.history_ids();
+        if ids.len() != h {
             return Err(malformed(format!(
-                "dataset {name} has {len} rows, rewards has {n}"
+                "it holds {h} histories, but {} of a grid of {} is {} ({ids:?})",
+                info.shard
+                    .map_or("all".to_string(), |s| format!("shard {s}")),
+                info.grid_histories,
+                ids.len()
             )));
         }
-    }
-    if h == 0 {
-        return Err(err(Problem::Empty("the file holds no histories".into())));
-    }
-    let n_obstacles = obstacle_shape.get(1).copied().unwrap_or(0);
-    if goal_shape != [h, 2] || obstacle_shape != [h, n_obstacles, 2] {
-        return Err(malformed(format!(
-            "task arrays have shapes {goal_shape:?} and {obstacle_shape:?}, expected [{h}, 2] and [{h}, n, 2]"
-        )));
+        Ok(Arrays {
+            observations,
+            next_observations,
+            actions,
+            rewards,
+            costs,
+            terminals,
+            timeouts,
+            cost_limit,
+            history_id,
+            goals,
+            obstacles,
+            n,
+            h,
+            n_obstacles,
+        })
     }
 
-    let ids = info.history_ids();
-    if ids.len() != h {
-        return Err(malformed(format!(
-            "it holds {h} histories, but {} of a grid of {} is {} ({ids:?})",
-            info.shard
-                .map_or("all".to_string(), |s| format!("shard {s}")),
-            info.grid_histories,
-            ids.len()
-        )));
-    }
-    // Split the flat arrays by history_id (non-decreasing, every id present).
-    // Out of order, a history would look empty though its steps are there.
-    if let Some(k) = (1..n).find(|&k| history_id[k] < history_id[k - 1]) {
-        return Err(malformed(format!(
-            "history_id must be non-decreasing (every history's steps together, in order 0..{h}): \
-             step {k} has id {} after id {}",
-            history_id[k],
-            history_id[k - 1]
-        )));
-    }
-    let mut histories = Vec::with_capacity(h);
-    let mut start = 0usize;
-    for i in 0..h {
-        let mut end = start;
-        while end < n && history_id[end] == (ids.start + i) as i64 {
-            end += 1;
+    /// The flat arrays split by `history_id` (non-decreasing, every id
+    /// present) into histories, each passing the writer's checks.
+    fn split(&self, path: &Path, info: &DatasetInfo) -> Result<Vec<History>, HistoryError> {
+        let err = |p| HistoryError::new(path, p);
+        let malformed = |what: String| err(Problem::Malformed(what));
+        let (n, h, history_id) = (self.n, self.h, &self.history_id);
+        let ids = info.history_ids();
+        // Out of order, a history would look empty though its steps are there.
+        if let Some(k) = (1..n).find(|&k| history_id[k] < history_id[k - 1]) {
+            return Err(malformed(format!(
+                "history_id must be non-decreasing (every history's steps together, in order 0..{h}): \
+                 step {k} has id {} after id {}",
+                history_id[k],
+                history_id[k - 1]
+            )));
         }
-        if end == start {
-            return Err(err(Problem::Empty(format!(
-                "history {i} (cost limit {}) has no steps",
-                cost_limit[i]
-            ))));
+        let mut histories = Vec::with_capacity(h);
+        let mut start = 0usize;
+        for i in 0..h {
+            let mut end = start;
+            while end < n && history_id[end] == (ids.start + i) as i64 {
+                end += 1;
+            }
+            if end == start {
+                return Err(err(Problem::Empty(format!(
+                    "history {i} (cost limit {}) has no steps",
+                    self.cost_limit[i]
+                ))));
+            }
+            let hist = self.history(i, start, end, path, info)?;
+            hist.check(i, info)
+                .map_err(|p| match p {
+                    Problem::Invalid(s) => Problem::Malformed(s),
+                    other => other,
+                })
+                .map_err(err)?;
+            histories.push(hist);
+            start = end;
         }
+        if start != n {
+            return Err(malformed(format!(
+                "history_id is not sorted {ids:?}: step {start} has id {}",
+                history_id[start]
+            )));
+        }
+        Ok(histories)
+    }
+
+    /// History `i`, the steps `start..end`: its task (every cell inside the
+    /// grid) and its rows of the per-step arrays.
+    fn history(
+        &self,
+        i: usize,
+        start: usize,
+        end: usize,
+        path: &Path,
+        info: &DatasetInfo,
+    ) -> Result<History, HistoryError> {
+        let n_obstacles = self.n_obstacles;
         let cell = |r: i64, c: i64| -> Result<Cell, HistoryError> {
             if r < 0 || c < 0 || r as usize >= info.grid_size || c as usize >= info.grid_size {
-                return Err(malformed(format!(
-                    "history {i}: cell ({r}, {c}) is outside the {g}x{g} grid",
-                    g = info.grid_size
-                )));
+                return Err(HistoryError::new(
+                    path,
+                    Problem::Malformed(format!(
+                        "history {i}: cell ({r}, {c}) is outside the {g}x{g} grid",
+                        g = info.grid_size
+                    )),
+                ));
             }
             Ok(Cell {
                 row: r as usize,
@@ -158,43 +244,28 @@ pub fn read_histories(
         };
         let task = Task {
             grid_size: info.grid_size,
-            goal: cell(goals[2 * i], goals[2 * i + 1])?,
+            goal: cell(self.goals[2 * i], self.goals[2 * i + 1])?,
             obstacles: (0..n_obstacles)
                 .map(|j| {
                     let k = 2 * (i * n_obstacles + j);
-                    cell(obstacles[k], obstacles[k + 1])
+                    cell(self.obstacles[k], self.obstacles[k + 1])
                 })
                 .collect::<Result<_, _>>()?,
         };
         let rows = |a: &[f32], cols: usize| a[start * cols..end * cols].to_vec();
         let flags = |a: &[f32]| a[start..end].iter().map(|&x| x != 0.0).collect();
-        let hist = History {
-            cost_limit: cost_limit[i],
+        Ok(History {
+            cost_limit: self.cost_limit[i],
             task,
-            observations: rows(&observations, info.obs_dim),
-            next_observations: rows(&next_observations, info.obs_dim),
-            actions: rows(&actions, info.action_dim),
-            rewards: rows(&rewards, 1),
-            costs: rows(&costs, 1),
-            terminals: flags(&terminals),
-            timeouts: flags(&timeouts),
-        };
-        hist.check(i, &info)
-            .map_err(|p| match p {
-                Problem::Invalid(s) => Problem::Malformed(s),
-                other => other,
-            })
-            .map_err(err)?;
-        histories.push(hist);
-        start = end;
+            observations: rows(&self.observations, info.obs_dim),
+            next_observations: rows(&self.next_observations, info.obs_dim),
+            actions: rows(&self.actions, info.action_dim),
+            rewards: rows(&self.rewards, 1),
+            costs: rows(&self.costs, 1),
+            terminals: flags(&self.terminals),
+            timeouts: flags(&self.timeouts),
+        })
     }
-    if start != n {
-        return Err(malformed(format!(
-            "history_id is not sorted {ids:?}: step {start} has id {}",
-            history_id[start]
-        )));
-    }
-    Ok(HistoryFile { info, histories })
 }
 
 /// The file's attributes (format version first: a file of another version
