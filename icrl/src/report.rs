@@ -270,70 +270,84 @@ impl EvalResult {
 
     /// Curves, sweep and trend (see the module documentation for the averaging).
     pub fn summary(&self) -> Summary {
+        let (total_return_slope, max_cost_slope) = self.budget_slopes();
+        Summary {
+            per_episode: (0..self.episodes).map(|k| self.episode_stats(k)).collect(),
+            per_condition: (0..self.conditions.len())
+                .map(|c| self.condition_stats(c))
+                .collect(),
+            trend: self.trend(),
+            mean_budget: self.conditions.iter().map(|c| c.ctg).sum::<f32>()
+                / self.conditions.len() as f32,
+            total_return_slope,
+            max_cost_slope,
+        }
+    }
+
+    /// The curves' point at episode index `k` (from 0).
+    fn episode_stats(&self, k: usize) -> EpisodeStats {
+        EpisodeStats {
+            k: k + 1,
+            ret: ms(&self.per_task_over_conditions(k, |c, t, k| self.returns[c][t][k] as f64)),
+            cost: ms(&self.per_task_over_conditions(k, |c, t, k| self.costs[c][t][k] as f64)),
+            violation: ms(&self.per_task_over_conditions(k, |c, t, k| {
+                f64::from(u8::from(self.costs[c][t][k] > self.conditions[c].ctg))
+            })),
+            success: ms(&self.per_task_over_conditions(k, |c, t, k| {
+                f64::from(u8::from(self.reached_goal[c][t][k]))
+            })),
+            discovery: ms(&self.conditional_success(k, false)),
+            revisit: ms(&self.conditional_success(k, true)),
+            found_by: ms(&self.per_task_over_conditions(k, |c, t, k| {
+                f64::from(u8::from(self.reached_goal[c][t][..=k].contains(&true)))
+            })),
+            search_new_cells: ms(&self.cells_entered_while_searching(k)),
+            repeat_cost: if self.repeat_costs.is_empty() {
+                MeanSe::undefined()
+            } else {
+                ms(&self
+                    .per_task_over_conditions(k, |c, t, k| f64::from(self.repeat_costs[c][t][k])))
+            },
+        }
+    }
+
+    /// The sweep's point for condition `c`: over its K episodes per task,
+    /// the total return, the maximum and mean cost, the share over budget.
+    fn condition_stats(&self, c: usize) -> ConditionStats {
+        let (cond, k_n) = (&self.conditions[c], self.episodes);
+        let tasks = 0..self.n_tasks();
+        let total: Vec<f64> = tasks
+            .clone()
+            .map(|t| self.returns[c][t].iter().map(|&g| g as f64).sum())
+            .collect();
+        let max: Vec<f64> = tasks
+            .clone()
+            .map(|t| {
+                self.costs[c][t]
+                    .iter()
+                    .fold(f64::NEG_INFINITY, |m, &g| m.max(g as f64))
+            })
+            .collect();
+        let mean: Vec<f64> = tasks
+            .clone()
+            .map(|t| self.costs[c][t].iter().map(|&g| g as f64).sum::<f64>() / k_n as f64)
+            .collect();
+        let viol: Vec<f64> = tasks
+            .map(|t| self.costs[c][t].iter().filter(|&&g| g > cond.ctg).count() as f64 / k_n as f64)
+            .collect();
+        ConditionStats {
+            condition: *cond,
+            total_return: ms(&total),
+            max_cost: ms(&max),
+            mean_cost: ms(&mean),
+            violation: ms(&viol),
+        }
+    }
+
+    /// Return and cost over the first and the last fifth of the episodes
+    /// (at least one), per task over the conditions, and their change.
+    fn trend(&self) -> Trend {
         let k_n = self.episodes;
-        let per_episode = (0..k_n)
-            .map(|k| EpisodeStats {
-                k: k + 1,
-                ret: ms(&self.per_task_over_conditions(k, |c, t, k| self.returns[c][t][k] as f64)),
-                cost: ms(&self.per_task_over_conditions(k, |c, t, k| self.costs[c][t][k] as f64)),
-                violation: ms(&self.per_task_over_conditions(k, |c, t, k| {
-                    f64::from(u8::from(self.costs[c][t][k] > self.conditions[c].ctg))
-                })),
-                success: ms(&self.per_task_over_conditions(k, |c, t, k| {
-                    f64::from(u8::from(self.reached_goal[c][t][k]))
-                })),
-                discovery: ms(&self.conditional_success(k, false)),
-                revisit: ms(&self.conditional_success(k, true)),
-                found_by: ms(&self.per_task_over_conditions(k, |c, t, k| {
-                    f64::from(u8::from(self.reached_goal[c][t][..=k].contains(&true)))
-                })),
-                search_new_cells: ms(&self.cells_entered_while_searching(k)),
-                repeat_cost: if self.repeat_costs.is_empty() {
-                    MeanSe::undefined()
-                } else {
-                    ms(&self.per_task_over_conditions(k, |c, t, k| {
-                        f64::from(self.repeat_costs[c][t][k])
-                    }))
-                },
-            })
-            .collect();
-        let per_condition = self
-            .conditions
-            .iter()
-            .enumerate()
-            .map(|(c, cond)| {
-                let tasks = 0..self.n_tasks();
-                let total: Vec<f64> = tasks
-                    .clone()
-                    .map(|t| self.returns[c][t].iter().map(|&g| g as f64).sum())
-                    .collect();
-                let max: Vec<f64> = tasks
-                    .clone()
-                    .map(|t| {
-                        self.costs[c][t]
-                            .iter()
-                            .fold(f64::NEG_INFINITY, |m, &g| m.max(g as f64))
-                    })
-                    .collect();
-                let mean: Vec<f64> = tasks
-                    .clone()
-                    .map(|t| self.costs[c][t].iter().map(|&g| g as f64).sum::<f64>() / k_n as f64)
-                    .collect();
-                let viol: Vec<f64> = tasks
-                    .map(|t| {
-                        self.costs[c][t].iter().filter(|&&g| g > cond.ctg).count() as f64
-                            / k_n as f64
-                    })
-                    .collect();
-                ConditionStats {
-                    condition: *cond,
-                    total_return: ms(&total),
-                    max_cost: ms(&max),
-                    mean_cost: ms(&mean),
-                    violation: ms(&viol),
-                }
-            })
-            .collect();
         let window = (k_n / 5).max(1);
         let window_mean = |data: &Vec<Vec<Vec<f32>>>, t: usize, first: bool| -> f64 {
             let ks = if first { 0..window } else { k_n - window..k_n };
@@ -355,7 +369,7 @@ impl EvalResult {
         let (fc, lc) = (per_task(&self.costs, true), per_task(&self.costs, false));
         let diff =
             |a: &[f64], b: &[f64]| -> Vec<f64> { a.iter().zip(b).map(|(x, y)| x - y).collect() };
-        let trend = Trend {
+        Trend {
             window,
             first_return: ms(&fr),
             last_return: ms(&lr),
@@ -363,9 +377,13 @@ impl EvalResult {
             first_cost: ms(&fc),
             last_cost: ms(&lc),
             cost_drop: ms(&diff(&fc, &lc)),
-        };
-        let mean_budget =
-            self.conditions.iter().map(|c| c.ctg).sum::<f32>() / self.conditions.len() as f32;
+        }
+    }
+
+    /// The slopes against the budget (CTG) of the total return and of the
+    /// maximum episode cost: per task over the conditions, then mean and
+    /// standard error over the tasks.
+    fn budget_slopes(&self) -> (Option<MeanSe>, Option<MeanSe>) {
         let ctgs: Vec<f64> = self.conditions.iter().map(|c| c.ctg as f64).collect();
         let slopes = |per_task: &dyn Fn(usize, usize) -> f64| -> Option<MeanSe> {
             let s: Option<Vec<f64>> = (0..self.n_tasks())
@@ -383,14 +401,7 @@ impl EvalResult {
                 .iter()
                 .fold(f64::NEG_INFINITY, |m, &g| m.max(g as f64))
         });
-        Summary {
-            per_episode,
-            per_condition,
-            trend,
-            mean_budget,
-            total_return_slope,
-            max_cost_slope,
-        }
+        (total_return_slope, max_cost_slope)
     }
 }
 

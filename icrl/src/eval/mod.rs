@@ -365,6 +365,126 @@ struct RowState {
     repeat_cost: f32,
 }
 
+impl RowState {
+    /// Counts one step of the running episode, which arrived at `arrived`:
+    /// its reward, cost and length, the cell it entered (new to the
+    /// trajectory's `visited` or not), and its cost if paid again near one
+    /// of an earlier episode (`cost_memory`).
+    fn count_step(
+        &mut self,
+        o: StepOutcome,
+        arrived: &[f32],
+        visited: &mut HashSet<(i64, i64)>,
+        cost_memory: &mut CostMemory,
+        search_cell: f64,
+    ) {
+        self.ret += o.reward;
+        self.cost += o.cost;
+        self.len += 1;
+        let cell = position_cell(arrived, search_cell);
+        self.new_cells += u32::from(visited.insert(cell));
+        if o.cost > 0.0 && cost_memory.paid(arrived) {
+            self.repeat_cost += o.cost;
+        }
+    }
+
+    /// Stores the finished episode of trajectory `row` (condition `row /
+    /// tasks`, task `row % tasks`) in `result`, and starts the next.
+    fn end_episode(
+        &mut self,
+        result: &mut EvalResult,
+        row: usize,
+        tasks: usize,
+        reached_goal: bool,
+    ) {
+        let (c, t) = (row / tasks, row % tasks);
+        result.returns[c][t].push(self.ret);
+        result.costs[c][t].push(self.cost);
+        result.lengths[c][t].push(self.len);
+        result.reached_goal[c][t].push(reached_goal);
+        result.new_cells[c][t].push(self.new_cells);
+        result.repeat_costs[c][t].push(self.repeat_cost);
+        *self = RowState {
+            done: self.done + 1,
+            ..Default::default()
+        };
+    }
+}
+
+/// What a batch's agent is given at the next step, row by row.
+struct BatchInput {
+    obs_dim: usize,
+    act_dim: usize,
+    obs: Vec<f32>,
+    arrived: Vec<f32>,
+    prev_action: Vec<f32>,
+    reward: Vec<f32>,
+    cost: Vec<f32>,
+    start: Vec<bool>,
+}
+
+impl BatchInput {
+    /// The first step's: the environments' observations after their reset.
+    fn new(venv: &VecEnv, obs_dim: usize, act_dim: usize) -> Self {
+        let b = venv.len();
+        BatchInput {
+            obs_dim,
+            act_dim,
+            obs: venv.observations().to_vec(),
+            arrived: vec![0.0f32; b * obs_dim],
+            prev_action: vec![0.0f32; b * act_dim],
+            reward: vec![0.0f32; b],
+            cost: vec![0.0f32; b],
+            start: vec![true; b],
+        }
+    }
+
+    fn step_input(&self) -> StepInput<'_> {
+        StepInput {
+            obs: &self.obs,
+            arrived_obs: &self.arrived,
+            prev_action: &self.prev_action,
+            reward: &self.reward,
+            cost: &self.cost,
+            episode_start: &self.start,
+        }
+    }
+
+    /// Row `i`'s next input from its outcome `o`: the action taken (one-hot
+    /// for a discrete one), the reward, the cost, whether an episode starts,
+    /// and the observation arrived at (the final one where the episode ended).
+    fn take_outcome(
+        &mut self,
+        i: usize,
+        o: StepOutcome,
+        actions: &Actions,
+        continuous: &[f32],
+        venv: &VecEnv,
+    ) {
+        let (obs_dim, act_dim) = (self.obs_dim, self.act_dim);
+        let row_action = &mut self.prev_action[i * act_dim..(i + 1) * act_dim];
+        match actions {
+            Actions::Discrete(a) => {
+                row_action.fill(0.0);
+                row_action[a[i]] = 1.0;
+            }
+            Actions::Continuous(_) => {
+                row_action.copy_from_slice(&continuous[i * act_dim..(i + 1) * act_dim]);
+            }
+        }
+        self.reward[i] = o.reward;
+        self.cost[i] = o.cost;
+        self.start[i] = o.done();
+        let reached = if o.done() {
+            venv.final_observations()
+        } else {
+            venv.observations()
+        };
+        self.arrived[i * obs_dim..(i + 1) * obs_dim]
+            .copy_from_slice(&reached[i * obs_dim..(i + 1) * obs_dim]);
+    }
+}
+
 #[allow(clippy::too_many_arguments)]
 fn run_batch(
     agent: &mut dyn InContextAgent,
@@ -386,12 +506,7 @@ fn run_batch(
     let mut state = vec![RowState::default(); b];
     let mut visited = vec![HashSet::new(); b];
     let mut cost_memory = vec![CostMemory::new(cfg.repeat_radius); b];
-    let mut prev_action = vec![0.0f32; b * act_dim];
-    let mut reward = vec![0.0f32; b];
-    let mut cost = vec![0.0f32; b];
-    let mut start = vec![true; b];
-    let mut obs = venv.observations().to_vec();
-    let mut arrived = vec![0.0f32; b * obs_dim];
+    let mut input = BatchInput::new(venv, obs_dim, act_dim);
     let mut discrete = Vec::with_capacity(b);
     let mut continuous = Vec::with_capacity(b * act_dim);
     let max_steps = k_n * t_max;
@@ -409,44 +524,21 @@ fn run_batch(
                 steps: max_steps,
             });
         }
-        let input = StepInput {
-            obs: &obs,
-            arrived_obs: &arrived,
-            prev_action: &prev_action,
-            reward: &reward,
-            cost: &cost,
-            episode_start: &start,
-        };
         // Every later position is an arrival, counted below.
-        for (i, seen) in visited.iter_mut().enumerate().filter(|&(i, _)| start[i]) {
-            seen.insert(position_cell(&obs[i * obs_dim..], cfg.search_cell));
+        for (i, seen) in visited
+            .iter_mut()
+            .enumerate()
+            .filter(|&(i, _)| input.start[i])
+        {
+            seen.insert(position_cell(&input.obs[i * obs_dim..], cfg.search_cell));
         }
-        let actions = agent.act(&input, cfg.greedy)?;
+        let actions = agent.act(&input.step_input(), cfg.greedy)?;
         let outcomes = step_envs(venv, &actions, act_space, &mut discrete, &mut continuous)?;
 
         let mut finished = 0;
         for i in 0..b {
             let o = outcomes[i];
-            let row_action = &mut prev_action[i * act_dim..(i + 1) * act_dim];
-            match &actions {
-                Actions::Discrete(a) => {
-                    row_action.fill(0.0);
-                    row_action[a[i]] = 1.0;
-                }
-                Actions::Continuous(_) => {
-                    row_action.copy_from_slice(&continuous[i * act_dim..(i + 1) * act_dim]);
-                }
-            }
-            reward[i] = o.reward;
-            cost[i] = o.cost;
-            start[i] = o.done();
-            let reached = if o.done() {
-                venv.final_observations()
-            } else {
-                venv.observations()
-            };
-            arrived[i * obs_dim..(i + 1) * obs_dim]
-                .copy_from_slice(&reached[i * obs_dim..(i + 1) * obs_dim]);
+            input.take_outcome(i, o, &actions, &continuous, venv);
             if recorded_row == Some(i)
                 && let Some(r) = recording.as_mut()
                 && state[i].done < k_n
@@ -457,7 +549,7 @@ fn run_batch(
                     venv,
                     &actions,
                     &continuous,
-                    &arrived,
+                    &input.arrived,
                     o,
                     row,
                     (state[i].done, k_n, seeds[i]),
@@ -467,31 +559,21 @@ fn run_batch(
             if s.done >= k_n || i >= live {
                 continue;
             }
-            s.ret += o.reward;
-            s.cost += o.cost;
-            s.len += 1;
-            let cell = position_cell(&arrived[i * obs_dim..], cfg.search_cell);
-            s.new_cells += u32::from(visited[i].insert(cell));
-            if o.cost > 0.0 && cost_memory[i].paid(&arrived[i * obs_dim..]) {
-                s.repeat_cost += o.cost;
-            }
+            let arrived = &input.arrived[i * obs_dim..];
+            s.count_step(
+                o,
+                arrived,
+                &mut visited[i],
+                &mut cost_memory[i],
+                cfg.search_cell,
+            );
             if o.done() {
                 cost_memory[i].end_episode();
-                let (c, t) = (rows[i] / nt, rows[i] % nt);
-                result.returns[c][t].push(s.ret);
-                result.costs[c][t].push(s.cost);
-                result.lengths[c][t].push(s.len);
-                result.reached_goal[c][t].push(o.terminated);
-                result.new_cells[c][t].push(s.new_cells);
-                result.repeat_costs[c][t].push(s.repeat_cost);
-                *s = RowState {
-                    done: s.done + 1,
-                    ..Default::default()
-                };
+                s.end_episode(result, rows[i], nt, o.terminated);
                 finished += 1;
             }
         }
-        obs.copy_from_slice(venv.observations());
+        input.obs.copy_from_slice(venv.observations());
         if finished > 0 {
             on_episodes(finished);
         }

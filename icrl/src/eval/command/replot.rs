@@ -31,8 +31,46 @@ pub fn replot(dirs: &[PathBuf], out: &Path, force: bool) -> Result<EvalOutputs, 
             output::check_output(&out.join(f), Existing::from_force(force))?;
         }
     }
-    // (env, method, sweep) -> summary, in file-name order for stability.
-    let mut reports: Vec<(EnvName, Method, bool, Summary)> = Vec::new();
+    let reports = read_reports(dirs)?;
+    if reports.is_empty() {
+        return Err(EvalCmdError::Options(format!(
+            "no eval reports (*.json written by icrl eval) in {}",
+            dirs.iter()
+                .map(|d| d.display().to_string())
+                .collect::<Vec<_>>()
+                .join(", ")
+        )));
+    }
+    output::create_folder(out)?;
+    let mut outputs = EvalOutputs::default();
+    let fig1 = env_curves(&reports, false);
+    if !fig1.is_empty() {
+        outputs
+            .files
+            .extend(plots::figure1(&fig1, &out.join("figure1_all"))?);
+    }
+    let fig2 = env_curves(&reports, true);
+    if !fig2.is_empty() {
+        outputs
+            .files
+            .extend(plots::figure2(&fig2, &out.join("figure2_all"))?);
+    }
+    outputs.lines.push(format!(
+        "redrew {} reports ({} environments)",
+        reports.len(),
+        fig1.len().max(fig2.len())
+    ));
+    Ok(outputs)
+}
+
+/// One report as the figures take it: environment, method, whether it is a
+/// sweep, and its summary.
+type Report = (EnvName, Method, bool, Summary);
+
+/// The reports of the JSON files in `dirs`, in file-name order for
+/// stability; a folder that is not there is refused.
+fn read_reports(dirs: &[PathBuf]) -> Result<Vec<Report>, EvalCmdError> {
+    let mut reports = Vec::new();
     for dir in dirs {
         if !dir.is_dir() {
             return Err(EvalCmdError::Options(format!(
@@ -47,100 +85,81 @@ pub fn replot(dirs: &[PathBuf], out: &Path, force: bool) -> Result<EvalOutputs, 
             .collect();
         files.sort();
         for f in files {
-            let text = std::fs::read(&f).map_err(io_err(&f))?;
-            // A damaged or foreign JSON file is named, never skipped in
-            // silence: the figure would lack a curve without saying so.
-            let v = serde_json::from_slice::<serde_json::Value>(&text).map_err(|e| {
-                EvalCmdError::Options(format!(
-                    "--from: {} is not readable JSON ({e}): a damaged eval report? Re-run the eval \
-                     that wrote it, or move the file out of the folder",
-                    f.display()
-                ))
-            })?;
-            let (Some(env), Some(method), Some(protocol), Some(summary)) = (
-                v.get("env").and_then(|e| e.as_str()),
-                v.get("method").and_then(|m| m.as_str()),
-                v.get("protocol").and_then(|p| p.as_str()),
-                v.get("summary"),
-            ) else {
-                return Err(EvalCmdError::Options(format!(
-                    "--from: {} is JSON but not an icrl eval report (it lacks env, method, protocol or \
-                     summary): move it out of the folder",
-                    f.display()
-                )));
-            };
-            // In-distribution diagnostics are not the paper's figures.
-            let Ok(env) = env.parse::<EnvName>() else {
-                continue;
-            };
-            if protocol.ends_with("-centre") {
-                continue;
-            }
-            let method = match method {
-                "Eppo" => Method::Eppo,
-                "Ad" => Method::Ad,
-                "Random" => Method::Random,
-                _ => continue,
-            };
-            let summary: Summary =
-                serde_json::from_value(summary.clone()).map_err(|source| EvalCmdError::Json {
-                    path: f.display().to_string(),
-                    source,
-                })?;
-            reports.push((env, method, protocol == "sweep", summary));
+            reports.extend(read_report(&f)?);
         }
     }
-    if reports.is_empty() {
+    Ok(reports)
+}
+
+/// The report in the JSON file `f`; `None` for one the paper's figures do
+/// not draw (in-distribution diagnostics, an unknown environment or
+/// method). A damaged or foreign JSON file is named, never skipped in
+/// silence: the figure would lack a curve without saying so.
+fn read_report(f: &Path) -> Result<Option<Report>, EvalCmdError> {
+    let text = std::fs::read(f).map_err(io_err(f))?;
+    let v = serde_json::from_slice::<serde_json::Value>(&text).map_err(|e| {
+        EvalCmdError::Options(format!(
+            "--from: {} is not readable JSON ({e}): a damaged eval report? Re-run the eval \
+             that wrote it, or move the file out of the folder",
+            f.display()
+        ))
+    })?;
+    let (Some(env), Some(method), Some(protocol), Some(summary)) = (
+        v.get("env").and_then(|e| e.as_str()),
+        v.get("method").and_then(|m| m.as_str()),
+        v.get("protocol").and_then(|p| p.as_str()),
+        v.get("summary"),
+    ) else {
         return Err(EvalCmdError::Options(format!(
-            "no eval reports (*.json written by icrl eval) in {}",
-            dirs.iter()
-                .map(|d| d.display().to_string())
-                .collect::<Vec<_>>()
-                .join(", ")
+            "--from: {} is JSON but not an icrl eval report (it lacks env, method, protocol or \
+             summary): move it out of the folder",
+            f.display()
         )));
+    };
+    // In-distribution diagnostics are not the paper's figures.
+    let Ok(env) = env.parse::<EnvName>() else {
+        return Ok(None);
+    };
+    if protocol.ends_with("-centre") {
+        return Ok(None);
     }
-    let curves = |sweep: bool| -> Vec<EnvCurves> {
-        EnvName::ALL
-            .into_iter()
-            .filter_map(|env| {
-                let mut c = EnvCurves {
-                    env: env_defaults(env).title.into(),
-                    methods: Vec::new(),
-                    random: None,
-                };
-                for method in [Method::Eppo, Method::Ad, Method::Random] {
-                    if let Some((.., s)) = reports
-                        .iter()
-                        .find(|r| r.0 == env && r.1 == method && r.2 == sweep)
-                    {
-                        match method {
-                            Method::Random => c.random = Some(s.clone()),
-                            m => c.methods.push((m.to_string(), s.clone())),
-                        }
+    let method = match method {
+        "Eppo" => Method::Eppo,
+        "Ad" => Method::Ad,
+        "Random" => Method::Random,
+        _ => return Ok(None),
+    };
+    let summary: Summary =
+        serde_json::from_value(summary.clone()).map_err(|source| EvalCmdError::Json {
+            path: f.display().to_string(),
+            source,
+        })?;
+    Ok(Some((env, method, protocol == "sweep", summary)))
+}
+
+/// One figure's columns: an environment's curves wherever `reports` has
+/// one of its protocol (`sweep` or not), EPPO, AD and the random policy.
+fn env_curves(reports: &[Report], sweep: bool) -> Vec<EnvCurves> {
+    EnvName::ALL
+        .into_iter()
+        .filter_map(|env| {
+            let mut c = EnvCurves {
+                env: env_defaults(env).title.into(),
+                methods: Vec::new(),
+                random: None,
+            };
+            for method in [Method::Eppo, Method::Ad, Method::Random] {
+                if let Some((.., s)) = reports
+                    .iter()
+                    .find(|r| r.0 == env && r.1 == method && r.2 == sweep)
+                {
+                    match method {
+                        Method::Random => c.random = Some(s.clone()),
+                        m => c.methods.push((m.to_string(), s.clone())),
                     }
                 }
-                (!c.methods.is_empty() || c.random.is_some()).then_some(c)
-            })
-            .collect()
-    };
-    output::create_folder(out)?;
-    let mut outputs = EvalOutputs::default();
-    let fig1 = curves(false);
-    if !fig1.is_empty() {
-        outputs
-            .files
-            .extend(plots::figure1(&fig1, &out.join("figure1_all"))?);
-    }
-    let fig2 = curves(true);
-    if !fig2.is_empty() {
-        outputs
-            .files
-            .extend(plots::figure2(&fig2, &out.join("figure2_all"))?);
-    }
-    outputs.lines.push(format!(
-        "redrew {} reports ({} environments)",
-        reports.len(),
-        fig1.len().max(fig2.len())
-    ));
-    Ok(outputs)
+            }
+            (!c.methods.is_empty() || c.random.is_some()).then_some(c)
+        })
+        .collect()
 }
