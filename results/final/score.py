@@ -7,35 +7,15 @@ read: the intermediate ones of the time-to-target curve.
 Prints a Markdown table: return first/last window, gain in standard errors,
 within budget at K, cost first/last window, found by K, revisit pooled over
 the episodes after the first, and Spearman's rho between budget and total
-return (ranks with ties averaged).
+return (ranks with ties averaged, `claims.spearman`).
 """
 import json
 import sys
+from pathlib import Path
 
-
-def ranks(values):
-    order = sorted(range(len(values)), key=lambda i: values[i])
-    out = [0.0] * len(values)
-    i = 0
-    while i < len(order):
-        j = i
-        while j + 1 < len(order) and values[order[j + 1]] == values[order[i]]:
-            j += 1
-        for m in range(i, j + 1):
-            out[order[m]] = (i + j) / 2 + 1
-        i = j + 1
-    return out
-
-
-def spearman(x, y):
-    if len(x) < 2:
-        return float("nan")
-    rx, ry = ranks(x), ranks(y)
-    mx, my = sum(rx) / len(rx), sum(ry) / len(ry)
-    sxy = sum((a - mx) * (b - my) for a, b in zip(rx, ry))
-    sxx = sum((a - mx) ** 2 for a in rx)
-    syy = sum((b - my) ** 2 for b in ry)
-    return sxy / (sxx * syy) ** 0.5 if sxx > 0 and syy > 0 else float("nan")
+# Spearman's rho as the claims table computes it (results/claims.py).
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+from claims import spearman  # noqa: E402
 
 
 def score(summary):
