@@ -20,6 +20,9 @@ use rand::seq::SliceRandom;
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
+mod common;
+use common::tiny_eppo_args;
+
 fn env_number<T: std::str::FromStr>(name: &str, default: T) -> T {
     std::env::var(name)
         .ok()
@@ -42,35 +45,7 @@ fn s(p: &Path) -> String {
 /// A finished darkroom EPPO run of 2 updates (tiny network, budgets [2, 4])
 /// in `out`; returns its run folder.
 fn tiny_run(out: &Path) -> PathBuf {
-    let mut args: Vec<String> = ["pretrain", "--env", "darkroom", "--out", &s(out)]
-        .map(String::from)
-        .to_vec();
-    for set in [
-        "max_episode_steps=6",
-        "k_min=2",
-        "k_max=2",
-        "n_envs=2",
-        "batch_size=2",
-        "replay_capacity=1000",
-        "encoder_hidden=16",
-        "head_hidden=16",
-        "model.d_model=16",
-        "model.n_heads=2",
-        "model.n_layers=1",
-        "model.d_ff=32",
-        "model.max_len=12",
-        "total_updates=2",
-        "updates_per_round=2",
-        "learning_starts=0",
-        "checkpoint_every=2",
-        "torch_threads=1",
-        "env_threads=1",
-        "ctg_min=2",
-        "ctg_max=4",
-    ] {
-        args.extend(["--set".to_string(), set.to_string()]);
-    }
-    let made = icrl(&args);
+    let made = icrl(&tiny_eppo_args(out));
     assert!(
         made.status.success(),
         "{}",
