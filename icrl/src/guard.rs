@@ -136,6 +136,20 @@ pub fn regular_file(path: &std::path::Path) -> Result<(), String> {
     }
 }
 
+/// `path` as a message shows it: whole up to 120 characters; a longer one
+/// (a user may pass thousands) by its first and last 48 characters and its
+/// length, `dddd…/eeee (4036 characters)`.
+pub fn short_path(path: &std::path::Path) -> String {
+    let text = path.display().to_string();
+    let chars: Vec<char> = text.chars().collect();
+    if chars.len() <= 120 {
+        return text;
+    }
+    let head: String = chars[..48].iter().collect();
+    let tail: String = chars[chars.len() - 48..].iter().collect();
+    format!("{head}…{tail} ({} characters)", chars.len())
+}
+
 /// The name of the first variable of `vs` (in name order) holding NaN or
 /// infinity, with how many of its values are not finite.
 pub fn non_finite_variable(vs: &VarStore) -> Option<(String, i64)> {

@@ -893,3 +893,118 @@ fn refused_runs_and_evals_leave_no_empty_folders() {
     assert!(left.is_empty(), "no empty run folder: {left:?}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// Trial 3, weak: a fork refused after its folder was made (the folder left
+/// behind, the error naming a folder the user never asked for), refusals
+/// that spoke of "the --out folder", a 4,000-character `--fork` path named
+/// by the source file, garbage lines of `metrics.jsonl` left out of a fork
+/// in silence. Settings are checked before anything is made; a start
+/// refused later removes the fork (and the folders made for it); each
+/// refusal names `--fork` and a long path shortened; left-out lines are
+/// named in a warning.
+#[test]
+fn a_refused_fork_leaves_nothing_and_names_the_fork_option() {
+    let dir = tmp("fork-refused");
+    let (run, _) = tiny_eppo_run(&dir.join("runs"));
+    let forks = dir.join("forks");
+    let fork = |to: &Path, sets: &[&str]| {
+        let (r, f) = (s(&run), s(to));
+        let mut args = vec![
+            "pretrain", "--env", "darkroom", "--resume", &r, "--fork", &f,
+        ];
+        for set in sets {
+            args.extend(["--set", set]);
+        }
+        icrl(&args)
+    };
+    let nothing_made = |what: &str| assert!(!forks.exists(), "{what}: no fork folder left");
+    refused(
+        &fork(&forks, &["lr=nan"]),
+        "eppo config: lr = NaN: must be a finite number in (0, 1]",
+    );
+    nothing_made("lr=nan");
+    refused(
+        &fork(&forks, &[]),
+        "step_2: it has done 2 updates and total_updates is 2, so the fork would train \
+         nothing; pass --set total_updates=3 or more; nothing was forked",
+    );
+    nothing_made("total_updates");
+    // Refused once the fork was made (the memory estimate needs the
+    // environment): removed, named as removed.
+    let big = fork(&forks, &["total_updates=4", "batch_size=1000000000"]);
+    refused(&big, "needs about");
+    refused(&big, "was removed: nothing was trained in it");
+    nothing_made("batch_size");
+    // A --fork folder the user made keeps what it held.
+    std::fs::create_dir(&forks).unwrap();
+    std::fs::write(forks.join("notes.txt"), "mine").unwrap();
+    refused(
+        &fork(&forks, &["total_updates=4", "batch_size=1000000000"]),
+        "was removed",
+    );
+    let held: Vec<_> = std::fs::read_dir(&forks)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert_eq!(held, ["notes.txt"]);
+    std::fs::remove_dir_all(&forks).unwrap();
+    // Refusals of the folder name --fork, not --out.
+    let null = fork(Path::new("/dev/null"), &["total_updates=4"]);
+    refused(&null, "/dev/null: a device, not a folder");
+    refused(&null, "it is the --fork folder");
+    refused(
+        &fork(&run.join("sub"), &["total_updates=4"]),
+        "pass --fork a folder outside every run folder",
+    );
+    assert!(!run.join("sub").exists());
+    // A path too long for a checkpoint's files: named shortened, before
+    // anything is made (it was named by the checkpoint's source file).
+    let long = dir.join(
+        std::iter::repeat_n("d".repeat(240), 16)
+            .chain(["e".repeat(180)])
+            .collect::<Vec<_>>()
+            .join("/"),
+    );
+    let chars = s(&long).len();
+    let got = fork(&long, &["total_updates=4"]);
+    refused(&got, &format!("…{} ({chars} characters)", "e".repeat(48)));
+    refused(&got, "more than the 4095 this system allows in a path");
+    refused(&got, "pass --fork a folder whose path is at most");
+    let err = String::from_utf8_lossy(&got.stderr);
+    assert!(!err.contains(&s(&run)) && err.len() < 700, "{err}");
+    assert!(!dir.join("d".repeat(240)).exists(), "no folder made");
+    // One name of 4,000 characters, relative: the system refuses it.
+    let got = Command::new(env!("CARGO_BIN_EXE_icrl"))
+        .current_dir(&dir)
+        .args(["pretrain", "--env", "darkroom", "--resume", &s(&run)])
+        .args(["--fork", &"d".repeat(4000), "--set", "total_updates=4"])
+        .output()
+        .unwrap();
+    refused(
+        &got,
+        "(4000 characters): cannot create it: File name too long",
+    );
+    refused(&got, "it is the --fork folder");
+    // Lines of the origin's metrics that are not records: named.
+    let metrics = run.join("metrics.jsonl");
+    let mut text = std::fs::read_to_string(&metrics).unwrap();
+    text.push_str("garbage {\n{\"updates\": \"two\"}\n");
+    std::fs::write(&metrics, &text).unwrap();
+    let got = fork(&forks, &["total_updates=4"]);
+    let err = String::from_utf8_lossy(&got.stderr).into_owned();
+    succeeded(&got);
+    let lines = text.lines().count();
+    assert!(
+        err.contains(&format!(
+            "warning: {}: 2 lines are not metric records (lines {}, {}): not JSON, or without \
+             its update counter; the fork's metrics.jsonl leaves them out, the original keeps \
+             them",
+            s(&metrics),
+            lines - 1,
+            lines
+        )),
+        "{err}"
+    );
+    assert_eq!(std::fs::read_to_string(&metrics).unwrap(), text);
+    std::fs::remove_dir_all(&dir).unwrap();
+}

@@ -425,7 +425,39 @@ fn pretrain_ad(args: PretrainArgs) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// `pretrain`: a new run, a resumed one, or a fork; a fork whose start is
+/// refused before it trained is removed (it holds nothing the user made).
 fn pretrain(mut args: PretrainArgs) -> anyhow::Result<()> {
+    let forked = match (&args.fork, &args.resume) {
+        (Some(root), Some(from)) => {
+            let mut sets = std::mem::take(&mut args.set);
+            if let Some(seed) = args.seed.take() {
+                sets.push(format!("seed={seed}"));
+            }
+            if args.method == "eppo"
+                && let Some(device) = args.device.take()
+            {
+                sets.push(format!("device=\"{device}\""));
+            }
+            let forked = icrl::cli::pretrain::fork(&args.env, &args.method, from, &sets, root)?;
+            args.resume = Some(forked.run.path.clone());
+            Some(forked)
+        }
+        _ => None,
+    };
+    match (train_or_resume(args), forked) {
+        (Err(e), Some(forked)) if interrupted(&e).is_none() && forked.remove_if_untrained() => {
+            Err(anyhow::anyhow!(
+                "{e:#}; the fork {} was removed: nothing was trained in it",
+                forked.run.path.display()
+            ))
+        }
+        (result, _) => result,
+    }
+}
+
+/// The rest of `pretrain`: `--resume-in-out`, then EPPO or AD.
+fn train_or_resume(mut args: PretrainArgs) -> anyhow::Result<()> {
     if args.resume_in_out {
         use icrl::cli::pretrain::{InOut, run_in_out};
         match run_in_out(&args.out, &args.env, &args.method, &args.set)? {
@@ -442,19 +474,6 @@ fn pretrain(mut args: PretrainArgs) -> anyhow::Result<()> {
                 return Ok(());
             }
         }
-    }
-    if let (Some(root), Some(from)) = (&args.fork, &args.resume) {
-        let mut sets = std::mem::take(&mut args.set);
-        if let Some(seed) = args.seed.take() {
-            sets.push(format!("seed={seed}"));
-        }
-        if args.method == "eppo"
-            && let Some(device) = args.device.take()
-        {
-            sets.push(format!("device=\"{device}\""));
-        }
-        let new = icrl::cli::pretrain::fork(&args.env, &args.method, from, &sets, root)?;
-        args.resume = Some(new);
     }
     if args.method == "ad" {
         return pretrain_ad(args);
@@ -533,6 +552,23 @@ fn print_learning_summary(env: &str, report: &icrl::eppo::PretrainReport) -> any
     Ok(())
 }
 
+/// The checkpoint and update count of a run stopped by SIGINT/SIGTERM.
+fn interrupted(e: &anyhow::Error) -> Option<(PathBuf, usize)> {
+    match e.downcast_ref::<icrl::eppo::EppoError>() {
+        Some(icrl::eppo::EppoError::Interrupted {
+            checkpoint,
+            updates,
+        }) => Some((checkpoint.clone(), *updates as usize)),
+        _ => match e.downcast_ref::<icrl::ad::AdError>() {
+            Some(icrl::ad::AdError::Interrupted {
+                checkpoint,
+                updates,
+            }) => Some((checkpoint.clone(), *updates)),
+            _ => None,
+        },
+    }
+}
+
 /// `pretrain` with the graceful stop: the first SIGINT/SIGTERM ends training
 /// after the current update with a checkpoint and the resume command (exit
 /// 130); a second exits at once.
@@ -542,24 +578,8 @@ fn pretrain_with_stop(args: PretrainArgs) -> ExitCode {
     }
     let (env, method) = (args.env.clone(), args.method.clone());
     let result = pretrain(args);
-    let interrupted =
-        result
-            .as_ref()
-            .err()
-            .and_then(|e| match e.downcast_ref::<icrl::eppo::EppoError>() {
-                Some(icrl::eppo::EppoError::Interrupted {
-                    checkpoint,
-                    updates,
-                }) => Some((checkpoint.clone(), *updates as usize)),
-                _ => match e.downcast_ref::<icrl::ad::AdError>() {
-                    Some(icrl::ad::AdError::Interrupted {
-                        checkpoint,
-                        updates,
-                    }) => Some((checkpoint.clone(), *updates)),
-                    _ => None,
-                },
-            });
-    match (result, interrupted) {
+    let stopped = result.as_ref().err().and_then(interrupted);
+    match (result, stopped) {
         (Ok(()), _) => ExitCode::SUCCESS,
         (Err(_), Some((checkpoint, updates))) => {
             eprintln!(

@@ -39,7 +39,7 @@ mod writing;
 
 pub use manifest::{Manifest, drop_file, read_manifest, record_forked_max_len, sha256_file};
 pub use metrics::{MetricsWriter, recorded_counters, truncate_metrics};
-pub use run_dir::{RunDir, checkpoint_folders};
+pub use run_dir::{ForkFrom, Forked, RunDir, checkpoint_folders};
 pub use writing::{Retention, last_good};
 
 /// Version of the checkpoint layout; bumped when files or their meaning change.

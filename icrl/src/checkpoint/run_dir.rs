@@ -75,12 +75,18 @@ impl RunDir {
 
     /// [`RunDir::create`] with the base name given.
     pub fn create_named(root: &Path, base: &str) -> Result<Self, CheckpointError> {
-        refuse_nesting(root)?;
+        Self::create_in(root, base, "--out")
+    }
+
+    /// [`RunDir::create_named`] under `root`, the folder the option `flag`
+    /// (`--out`, `--fork`) named: its refusals name that option.
+    fn create_in(root: &Path, base: &str, flag: &str) -> Result<Self, CheckpointError> {
+        refuse_nesting(root, flag)?;
         // `--out` at a file, a device or a symlink loop: say so, not EEXIST.
         safety_envs::output::create_folder(root).map_err(|e| CheckpointError::Invalid {
-            path: e.path,
+            path: PathBuf::from(crate::guard::short_path(&e.path)),
             problem: e.problem,
-            fix: "it is the --out folder".into(),
+            fix: format!("it is the {flag} folder"),
         })?;
         for n in 1..10_000u32 {
             let name = if n == 1 {
@@ -343,23 +349,53 @@ impl RunDir {
         }
     }
 
-    /// Branches a new run under `out` from `checkpoint` of this run: a new
-    /// run folder ([`RunDir::create`]'s, for `seed`) holding
-    /// `config_toml`, the checkpoint (hard links where the file system
-    /// allows: checkpoint files are never rewritten in place), the metrics
-    /// up to the checkpoint's update (`metrics_key`), this run's `spec.json`
-    /// if it has one, and `forked_from.txt` naming the origin. Returns the
-    /// new run and its checkpoint folder; resuming that continues the branch.
-    pub fn fork(
-        &self,
-        checkpoint: &Path,
-        out: &Path,
-        seed: u64,
-        config_toml: &str,
-        metrics_key: &str,
-    ) -> Result<(Self, PathBuf), CheckpointError> {
-        let manifest = read_manifest(checkpoint)?;
-        let new = Self::create(out, &manifest.env, &manifest.method, seed)?;
+    /// Branches a new run under `out` (the `--fork` folder) from
+    /// `from.checkpoint` of this run: a new run folder
+    /// ([`RunDir::create`]'s, for `from.seed`) holding `from.config_toml`,
+    /// the checkpoint (hard links where the file system allows: checkpoint
+    /// files are never rewritten in place), the metrics up to the
+    /// checkpoint's update, this run's `spec.json` if it has one, and
+    /// `forked_from.txt` naming the origin. Before anything is made, a fork
+    /// that would train nothing or whose checkpoints' paths would be longer
+    /// than the system allows is refused; a failure while making it removes
+    /// all it made, the folders of `out` it created included. Resuming the
+    /// new run continues the branch.
+    pub fn fork(&self, from: &ForkFrom, out: &Path) -> Result<Forked, CheckpointError> {
+        let manifest = read_manifest(from.checkpoint)?;
+        if from.total_updates <= manifest.updates {
+            return Err(CheckpointError::Invalid {
+                path: from.checkpoint.to_path_buf(),
+                problem: format!(
+                    "it has done {} updates and {} is {}, so the fork would train nothing",
+                    manifest.updates, from.total_key, from.total_updates
+                ),
+                fix: format!(
+                    "pass --set {}={} or more; nothing was forked",
+                    from.total_key,
+                    manifest.updates + 1
+                ),
+            });
+        }
+        let base = format!(
+            "{}__{}__{}__{}",
+            manifest.env,
+            manifest.method,
+            from.seed,
+            utc_stamp()
+        );
+        let longest_file = manifest
+            .files
+            .keys()
+            .map(String::as_str)
+            .chain(["optimizer.safetensors", MANIFEST])
+            .max_by_key(|n| n.len())
+            .unwrap_or(MANIFEST);
+        check_path_length(out, &base, from.total_updates, longest_file)?;
+        let unreadable = unreadable_lines(&self.metrics_path(), from.metrics_key)?;
+        let created = first_missing(out);
+        let new = Self::create_in(out, &base, "--fork").inspect_err(|_| {
+            remove_made_folders(out, created.as_deref());
+        })?;
         let made = (|| {
             let step = new
                 .path
@@ -370,37 +406,185 @@ impl RunDir {
             // checkpoint's file.
             let names = manifest.files.keys().map(String::as_str).chain([MANIFEST]);
             for name in names.filter(|n| Path::new(n).components().count() == 1) {
-                let (from, to) = (checkpoint.join(name), step.join(name));
-                if fs::hard_link(&from, &to).is_err() {
-                    fs::copy(&from, &to).map_err(io(&from))?;
+                let (src, to) = (from.checkpoint.join(name), step.join(name));
+                if fs::hard_link(&src, &to).is_err() {
+                    fs::copy(&src, &to).map_err(io(&to))?;
                 }
             }
             for name in ["spec.json", "metrics.jsonl"] {
-                let from = self.path.join(name);
-                if from.is_file() {
-                    fs::copy(&from, new.path.join(name)).map_err(io(&from))?;
+                let src = self.path.join(name);
+                if src.is_file() {
+                    let to = new.path.join(name);
+                    fs::copy(&src, &to).map_err(io(&to))?;
                 }
             }
-            truncate_metrics(&new.metrics_path(), metrics_key, manifest.updates)?;
-            new.write_config(config_toml)?;
+            truncate_metrics(&new.metrics_path(), from.metrics_key, manifest.updates)?;
+            new.write_config(from.config_toml)?;
             let note = new.path.join("forked_from.txt");
-            fs::write(
-                &note,
-                format!(
-                    "{}
-",
-                    checkpoint.display()
-                ),
-            )
-            .map_err(io(&note))?;
+            fs::write(&note, format!("{}\n", from.checkpoint.display())).map_err(io(&note))?;
             Ok(step)
         })();
         match made {
-            Ok(step) => Ok((new, step)),
+            Ok(checkpoint) => Ok(Forked {
+                metrics_len: fs::metadata(new.metrics_path()).map_or(0, |m| m.len()),
+                run: new,
+                checkpoint,
+                created,
+                unreadable_metrics: unreadable,
+            }),
             Err(e) => {
                 let _ = fs::remove_dir_all(&new.path);
+                remove_made_folders(out, created.as_deref());
                 Err(e)
             }
+        }
+    }
+}
+
+/// What [`RunDir::fork`] branches a new run from, and how the run counts.
+pub struct ForkFrom<'a> {
+    /// The `checkpoints/step_N` folder of the run forked.
+    pub checkpoint: &'a Path,
+    pub seed: u64,
+    /// The fork's `config.toml`, the `--set`s applied and checked.
+    pub config_toml: &'a str,
+    /// The update counter of `metrics.jsonl` (EPPO `updates`, AD `update`).
+    pub metrics_key: &'a str,
+    /// The setting of the run's length (EPPO `total_updates`, AD `updates`)
+    /// and its value in the fork.
+    pub total_key: &'a str,
+    pub total_updates: u64,
+}
+
+/// A run [`RunDir::fork`] made.
+#[derive(Debug)]
+pub struct Forked {
+    pub run: RunDir,
+    /// Its copy of the checkpoint forked.
+    pub checkpoint: PathBuf,
+    /// The first folder of the `--fork` path this fork created (`None`:
+    /// it existed already).
+    created: Option<PathBuf>,
+    /// The size of its `metrics.jsonl` when made: larger once it trained.
+    metrics_len: u64,
+    /// Lines (from 1) of the origin's `metrics.jsonl` that are not metric
+    /// records (not JSON, or without the update counter): the fork's
+    /// metrics leave them out.
+    pub unreadable_metrics: Vec<usize>,
+}
+
+impl Forked {
+    /// Removes the fork when its start was refused before it trained: no
+    /// checkpoint but the one forked and its metrics as they were made.
+    /// Only what the fork wrote goes (the checkpoint's files by its
+    /// manifest, the run's own files), then the folders it made, each only
+    /// if empty. Returns whether it was removed.
+    pub fn remove_if_untrained(&self) -> bool {
+        let ck = self.run.path.join("checkpoints");
+        let only_forked = fs::read_dir(&ck).is_ok_and(|entries| {
+            entries
+                .filter_map(Result::ok)
+                .all(|e| e.path() == self.checkpoint)
+        });
+        let metrics_len = fs::metadata(self.run.metrics_path()).map_or(0, |m| m.len());
+        if !only_forked || metrics_len != self.metrics_len {
+            return false;
+        }
+        if super::writing::remove_checkpoint(&self.checkpoint).is_err() {
+            return false;
+        }
+        for f in [
+            ".lock",
+            "config.toml",
+            "spec.json",
+            "metrics.jsonl",
+            "forked_from.txt",
+        ] {
+            let _ = fs::remove_file(self.run.path.join(f));
+        }
+        let _ = fs::remove_dir(&ck);
+        let removed = fs::remove_dir(&self.run.path).is_ok();
+        if let Some(out) = self.run.path.parent() {
+            remove_made_folders(out, self.created.as_deref());
+        }
+        removed
+    }
+}
+
+/// Refuses a run under `root` (named `base`, or `base_N`) whose deepest
+/// file, `checkpoints/.tmp_step_{last}/{file}`, would have a longer path
+/// than the system allows (`PATH_MAX`), before anything is made: training
+/// would fail at its first checkpoint. `root` is named shortened.
+fn check_path_length(
+    root: &Path,
+    base: &str,
+    last: u64,
+    file: &str,
+) -> Result<(), CheckpointError> {
+    let deepest = root
+        .join(format!("{base}_9999"))
+        .join("checkpoints")
+        .join(format!(".tmp_step_{last}"))
+        .join(file);
+    let limit = libc::PATH_MAX as usize - 1;
+    let len = deepest.as_os_str().len();
+    if len <= limit {
+        return Ok(());
+    }
+    let room = limit - (len - root.as_os_str().len());
+    Err(CheckpointError::Invalid {
+        path: PathBuf::from(crate::guard::short_path(root)),
+        problem: format!(
+            "the fork's checkpoint files would lie at paths of up to {len} bytes \
+             (…/{base}/checkpoints/.tmp_step_{last}/{file}), more than the {limit} this \
+             system allows in a path"
+        ),
+        fix: format!(
+            "pass --fork a folder whose path is at most {room} bytes long; nothing was forked"
+        ),
+    })
+}
+
+/// The line numbers (from 1) of `path`'s lines that are not metric records
+/// with the counter `key`: not JSON (garbage, a line cut by a kill) or
+/// without it. None when there is no file.
+fn unreadable_lines(path: &Path, key: &str) -> Result<Vec<usize>, CheckpointError> {
+    let text = match fs::read_to_string(path) {
+        Ok(t) => t,
+        Err(e) if e.kind() == std::io::ErrorKind::NotFound => return Ok(Vec::new()),
+        Err(e) => return Err(io(path)(e)),
+    };
+    Ok(text
+        .lines()
+        .enumerate()
+        .filter(|(_, line)| {
+            serde_json::from_str::<serde_json::Value>(line)
+                .ok()
+                .and_then(|v| v.get(key)?.as_u64())
+                .is_none()
+        })
+        .map(|(i, _)| i + 1)
+        .collect())
+}
+
+/// The outermost folder of `dir` (or `dir` itself) that does not exist yet:
+/// what creating `dir` makes.
+fn first_missing(dir: &Path) -> Option<PathBuf> {
+    dir.ancestors()
+        .take_while(|a| !a.as_os_str().is_empty() && fs::symlink_metadata(a).is_err())
+        .last()
+        .map(Path::to_path_buf)
+}
+
+/// Removes the folders from `dir` up to `created` (a [`first_missing`] of
+/// `dir`), innermost first, each only if it is empty.
+fn remove_made_folders(dir: &Path, created: Option<&Path>) {
+    let Some(created) = created else {
+        return;
+    };
+    for a in dir.ancestors() {
+        if fs::remove_dir(a).is_err() || a == created {
+            return;
         }
     }
 }
@@ -408,7 +592,7 @@ impl RunDir {
 /// Refuses to create runs under `root` when `root` lies inside a run folder
 /// or a checkpoint folder: pruning and resuming the outer run would remove
 /// or mix the inner run's files.
-fn refuse_nesting(root: &Path) -> Result<(), CheckpointError> {
+fn refuse_nesting(root: &Path, flag: &str) -> Result<(), CheckpointError> {
     let Some(existing) = root
         .ancestors()
         .find(|a| !a.as_os_str().is_empty() && a.exists())
@@ -430,7 +614,7 @@ fn refuse_nesting(root: &Path) -> Result<(), CheckpointError> {
                     if is_checkpoint { "checkpoint" } else { "run" },
                     a.display()
                 ),
-                fix: "pass an --out folder outside every run folder".into(),
+                fix: format!("pass {flag} a folder outside every run folder"),
             });
         }
     }

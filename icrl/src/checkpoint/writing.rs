@@ -204,7 +204,7 @@ impl RunDir {
 /// without a readable manifest is not a checkpoint and is left alone, and
 /// so is anything else in it (a user's notes, a nested folder), with a
 /// warning naming what was kept.
-fn remove_checkpoint(dir: &Path) -> Result<(), CheckpointError> {
+pub(super) fn remove_checkpoint(dir: &Path) -> Result<(), CheckpointError> {
     let manifest = fs::read_to_string(dir.join(MANIFEST))
         .ok()
         .and_then(|t| serde_json::from_str::<Manifest>(&t).ok());

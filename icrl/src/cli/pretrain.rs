@@ -9,7 +9,7 @@ use safety_envs::EnvName;
 use crate::ad::{
     self, AdConfig, AdError, AdMetrics, AdSpec, TrainRequest, TrainSummary, preset_table,
 };
-use crate::checkpoint::{CheckpointError, RunDir};
+use crate::checkpoint::{CheckpointError, ForkFrom, Forked, RunDir};
 use crate::eppo::{self, EppoConfig, EppoError, PretrainOptions, PretrainReport};
 
 /// Resolves the configuration, runs [`eppo::train`] and draws the run's
@@ -252,15 +252,18 @@ const FORK_KEEPS: [&str; 8] = [
 /// configuration (any setting but the network's shape; `model.max_len` too
 /// where positions are sinusoidal), leaving the original
 /// run as it is; the branch starts with the weights, optimizer, multiplier
-/// and counters of CKPT and its metrics up to there. Returns the new run
-/// folder, which the caller resumes.
+/// and counters of CKPT and its metrics up to there. The settings are
+/// checked as a run checks them before anything is made (a refused fork
+/// leaves nothing behind). Returns the new run, which the caller resumes
+/// (and removes with [`Forked::remove_if_untrained`] if that start is
+/// refused).
 pub fn fork(
     env: &str,
     method: &str,
     from: &Path,
     sets: &[String],
     out: &Path,
-) -> Result<PathBuf, CheckpointError> {
+) -> anyhow::Result<Forked> {
     let (run, ckpt) = resolve_resume(from)?;
     RunDir::check_resume_flags(&ckpt, method, env)?;
     // EPPO checkpoints hold a copy of the config (a lost config.toml).
@@ -316,37 +319,100 @@ pub fn fork(
         .collect();
     if !kept.is_empty() {
         return Err(CheckpointError::Invalid {
-            path: ckpt,
+            path: ckpt.clone(),
             problem: format!(
                 "a fork starts from this checkpoint's weights, which do not fit another network \
                  shape: {}",
                 kept.join(", ")
             ),
             fix: "keep the model's settings, or start a new run".into(),
-        });
+        }
+        .into());
     }
     let seed = EppoConfig::setting(&table, "seed")
         .and_then(toml::Value::as_integer)
         .and_then(|s| u64::try_from(s).ok())
         .ok_or_else(|| invalid("no seed (a whole number of 0 or more)".into()))?;
+    let total_updates = fork_total_updates(method, &ckpt, &table)?;
     let text = toml::to_string(&table).map_err(|e| invalid(e.to_string()))?;
-    let key = if method == "ad" { "update" } else { "updates" };
-    let (new, step) = run.fork(&ckpt, out, seed, &text, key)?;
+    let (metrics_key, total_key) = if method == "ad" {
+        ("update", "updates")
+    } else {
+        ("updates", "total_updates")
+    };
+    let spec = ForkFrom {
+        checkpoint: &ckpt,
+        seed,
+        config_toml: &text,
+        metrics_key,
+        total_key,
+        total_updates,
+    };
+    let forked = run.fork(&spec, out)?;
     if let Some(max_len) = new_max_len {
-        crate::checkpoint::record_forked_max_len(&step, max_len)?;
+        let recorded = crate::checkpoint::record_forked_max_len(&forked.checkpoint, max_len);
+        if let Err(e) = recorded {
+            forked.remove_if_untrained();
+            return Err(e.into());
+        }
     }
     let changes: Vec<String> = changes.into_iter().map(|(_, c)| c).collect();
     eprintln!(
         "forked {} into {}{}",
         ckpt.display(),
-        new.path.display(),
+        forked.run.path.display(),
         if changes.is_empty() {
             String::new()
         } else {
             format!(" with {}", changes.join(", "))
         }
     );
-    Ok(new.path)
+    warn_unreadable_metrics(&run, &forked.unreadable_metrics);
+    Ok(forked)
+}
+
+/// The fork's settings checked as its run will check them, before anything
+/// is made (a `--set lr=nan` refused at the start of training left a fork
+/// folder the user never saw named, holding a run that could not train);
+/// returns its length in updates.
+fn fork_total_updates(method: &str, ckpt: &Path, table: &toml::Table) -> anyhow::Result<u64> {
+    if method == "ad" {
+        let cfg = AdConfig::from_table(table.clone())?;
+        return Ok(cfg.updates as u64);
+    }
+    let cfg = EppoConfig::from_table(&format!("the fork of {}", ckpt.display()), table.clone())?;
+    cfg.validate()?;
+    Ok(cfg.optimisation.total_updates)
+}
+
+/// Says which lines of the forked run's `metrics.jsonl` the fork left out
+/// (lines that are not metric records: garbage, or a line cut by a kill).
+/// A warning, not a refusal: the metrics are the run's log, not its state,
+/// and the run itself resumes with them as they are.
+fn warn_unreadable_metrics(run: &RunDir, lines: &[usize]) {
+    if lines.is_empty() {
+        return;
+    }
+    let mut named: Vec<String> = lines.iter().take(5).map(usize::to_string).collect();
+    if lines.len() > 5 {
+        named.push("...".into());
+    }
+    let what = if lines.len() == 1 {
+        format!("line {} is not a metric record", named[0])
+    } else {
+        format!(
+            "{} lines are not metric records (lines {})",
+            lines.len(),
+            named.join(", ")
+        )
+    };
+    eprintln!(
+        "warning: {}: {what}: not JSON, or without its update counter; the fork's metrics.jsonl \
+         leaves {} out, the original keeps {}",
+        run.metrics_path().display(),
+        if lines.len() == 1 { "it" } else { "them" },
+        if lines.len() == 1 { "it" } else { "them" },
+    );
 }
 
 /// `(key, "key: before -> after")` for every setting of `now` that differs
