@@ -116,6 +116,81 @@ fn a_grid_runs_here_task_after_task_and_a_second_run_skips_the_finished() {
     fs::remove_dir_all(&dir).unwrap();
 }
 
+/// `icrl sweep ARGS --grid GRID`, which must fail with exit 1; its stderr.
+fn sweep_refused(grid: &Path, args: &[&str]) -> String {
+    let out = Command::new(env!("CARGO_BIN_EXE_icrl"))
+        .arg("sweep")
+        .args(args)
+        .arg("--grid")
+        .arg(grid)
+        .stdin(Stdio::null())
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
+    assert_eq!(out.status.code(), Some(1), "{stderr}");
+    stderr
+}
+
+/// Trial 3, weak: `--gather` wrote empty tables when no run had finished,
+/// then refused its own leftovers after evaluating every run, and one
+/// damaged run aborted the whole table. Now nothing is written when there
+/// is nothing to gather, an earlier gather is refused before evaluating,
+/// and a damaged run is named in the table's notes, the rest gathered.
+#[test]
+fn a_gather_leaves_out_a_damaged_run_by_name_and_writes_nothing_it_cannot_fill() {
+    let dir = tmpdir("gather-damaged");
+    let grid = grid_file(&dir, "[0, 1, 2]", 2);
+    let mut text = fs::read_to_string(&grid).unwrap();
+    text.push_str("[gather]\neval_seeds = [3]\ntasks = 2\nepisodes = 2\nn_budgets = 2\n");
+    fs::write(&grid, text).unwrap();
+    let gather = ["--gather", "--threads", "1"];
+    let err = sweep_refused(&grid, &gather);
+    assert!(
+        err.contains("no run to gather (3 not finished, 0 left out); nothing was written"),
+        "{err}"
+    );
+    assert!(!dir.join("runs/gather").exists(), "no empty table");
+    sweep(&grid, &["--run"]);
+    let run = runs_of(&dir.join("runs/seed1")).remove(0);
+    let weights = run.join("checkpoints/step_2/model.safetensors");
+    let mut bytes = fs::read(&weights).unwrap();
+    bytes[100] ^= 0xff;
+    fs::write(&weights, bytes).unwrap();
+    let stdout = sweep(&grid, &gather);
+    assert!(
+        stdout.contains("2 runs evaluated, 0 not finished, 1 left out"),
+        "{stdout}"
+    );
+    let table = fs::read_to_string(dir.join("runs/gather/table.md")).unwrap();
+    assert!(
+        table.contains("| preset | 0 | 3 |") && table.contains("| preset | 2 | 3 |"),
+        "{table}"
+    );
+    assert!(!table.contains("| preset | 1 | 3 |"), "{table}");
+    let note = format!(
+        "Left out: finished runs that could not be evaluated:\n\n- task 1 (preset, seed 1): \
+         checkpoint {}",
+        run.join("checkpoints/step_2").display()
+    );
+    assert!(table.contains(&note), "{table}");
+    assert!(table.contains("differs from the manifest's"), "{table}");
+    // Again without --force: refused before any evaluation.
+    let err = sweep_refused(&grid, &gather);
+    assert!(
+        err.contains(&format!(
+            "{}: it holds an earlier --gather's evaluations or table: pass --force to evaluate \
+             again and replace them, or move the folder away; nothing was evaluated",
+            dir.join("runs/gather").display()
+        )),
+        "{err}"
+    );
+    assert_eq!(
+        fs::read_to_string(dir.join("runs/gather/table.md")).unwrap(),
+        table
+    );
+    fs::remove_dir_all(&dir).unwrap();
+}
+
 #[test]
 fn a_stop_reaches_the_task_in_progress_once_and_the_next_run_continues_it() {
     let dir = tmpdir("stop");

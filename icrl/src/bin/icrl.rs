@@ -167,11 +167,22 @@ fn sweep(args: SweepArgs) -> anyhow::Result<ExitCode> {
     for (task, why) in &g.unfinished {
         eprintln!("task {task}: {why}");
     }
+    for (task, why) in &g.left_out {
+        eprintln!("task {task}: left out of the table: {why}");
+    }
+    if g.evaluated == 0 {
+        anyhow::bail!(
+            "no run to gather ({} not finished, {} left out); nothing was written",
+            g.unfinished.len(),
+            g.left_out.len()
+        );
+    }
     print!("{}", g.table);
     println!(
-        "{} runs evaluated, {} not finished; wrote {}",
+        "{} runs evaluated, {} not finished, {} left out; wrote {}",
         g.evaluated,
         g.unfinished.len(),
+        g.left_out.len(),
         g.files
             .iter()
             .filter(|f| f.file_stem().is_some_and(|s| s == "table"))
@@ -179,9 +190,6 @@ fn sweep(args: SweepArgs) -> anyhow::Result<ExitCode> {
             .collect::<Vec<_>>()
             .join(", ")
     );
-    if g.evaluated == 0 {
-        anyhow::bail!("no finished run to gather");
-    }
     Ok(ExitCode::SUCCESS)
 }
 

@@ -26,7 +26,13 @@ pub struct GatherOptions {
 pub struct Gathered {
     /// Tasks whose run has not finished (or not started): index and why.
     pub unfinished: Vec<(usize, String)>,
+    /// Tasks whose finished run could not be evaluated (a damaged
+    /// checkpoint or run file): index and why. The table names them and
+    /// holds the rest.
+    pub left_out: Vec<(usize, String)>,
     pub evaluated: usize,
+    /// The Markdown table; empty, and nothing written, when no run was
+    /// evaluated.
     pub table: String,
     pub files: Vec<PathBuf>,
 }
@@ -34,7 +40,10 @@ pub struct Gathered {
 /// Evaluates the last checkpoint of every finished run (held-out tasks, as
 /// `icrl eval`, one folder per task under `OUT/gather/`), then writes the
 /// table of settings: mean and standard error over seeds of each run's
-/// first- and last-window return and cost.
+/// first- and last-window return and cost. A run that cannot be evaluated
+/// is left out and named in the table's notes, the rest gathered; with no
+/// run evaluated nothing is written. An earlier gather's files are refused
+/// before any evaluation unless `force`.
 pub fn gather(grid: &SweepGrid, opts: &GatherOptions) -> Result<Gathered, SweepError> {
     let env: EnvName = grid
         .env
@@ -47,91 +56,51 @@ pub fn gather(grid: &SweepGrid, opts: &GatherOptions) -> Result<Gathered, SweepE
         n_budgets: None,
         random: false,
     });
+    check_earlier_gather(grid, opts.force)?;
     let mut unfinished = Vec::new();
+    let mut left_out = Vec::new();
     let mut runs = Vec::new();
     let mut files = Vec::new();
     for task in grid.tasks() {
         let dir = grid.task_dir(&task);
-        let run = match run_in_out(&dir, &grid.env, &grid.method, &grid.sets(&task))? {
-            InOut::Finished { run, .. } => run,
-            InOut::Resume(run) => {
+        let run = match run_in_out(&dir, &grid.env, &grid.method, &grid.sets(&task)) {
+            Ok(InOut::Finished { run, .. }) => run,
+            Ok(InOut::Resume(run)) => {
                 unfinished.push((task.index, format!("{} has not finished", run.display())));
                 continue;
             }
-            InOut::Start => {
+            Ok(InOut::Start) => {
                 unfinished.push((
                     task.index,
                     format!("no run with a checkpoint in {}", dir.display()),
                 ));
                 continue;
             }
-        };
-        for &eval_seed in &protocol.eval_seeds {
-            let mut agent = crate::eval::load::load_checkpoint(&run, env)?;
-            agent.label = Some(grid.task_name(&task));
-            let eval = crate::eval::command::EvalOptions {
-                env,
-                tasks: protocol.tasks.unwrap_or(opts.tasks),
-                episodes: protocol.episodes.or(opts.episodes),
-                budgets: None,
-                n_budgets: protocol.n_budgets.unwrap_or(opts.n_budgets),
-                rtg: 1.0,
-                sweep: false,
-                random: protocol.random,
-                render: false,
-                out: grid
-                    .out
-                    .join("gather")
-                    .join(grid.task_name(&task))
-                    .join(format!("eval_seed{eval_seed}")),
-                eval_seed,
-                batch: 256,
-                threads: opts.threads,
-                greedy: false,
-                max_episode_steps: None,
-                progress: false,
-                in_distribution: false,
-                seed_torch: true,
-                command: format!(
-                    "icrl sweep --gather (task {}, evaluation seed {eval_seed})",
-                    task.index
-                ),
-                force: opts.force,
-            };
-            let out = crate::eval::command::run(vec![agent], &eval)?;
-            let report = |random: bool| -> Result<serde_json::Value, SweepError> {
-                let path = out
-                    .files
-                    .iter()
-                    .find(|f| {
-                        f.extension().is_some_and(|e| e == "json")
-                            && f.file_name()
-                                .is_some_and(|n| n.to_string_lossy().starts_with("random_"))
-                                == random
-                    })
-                    .ok_or_else(|| {
-                        SweepError::Io(format!("task {}: eval wrote no JSON report", task.index))
-                    })?;
-                std::fs::read_to_string(path)
-                    .ok()
-                    .and_then(|t| serde_json::from_str(&t).ok())
-                    .ok_or_else(|| SweepError::Io(format!("{}: unreadable report", path.display())))
-            };
-            let mut score = Score::of(&report(false)?["summary"]);
-            if protocol.random {
-                score.random_within = Score::of(&report(true)?["summary"]).within;
+            Err(e) => {
+                left_out.push((task.index, e.to_string()));
+                continue;
             }
-            runs.push(RunScore {
-                label: task.label(),
-                seed: task.seed,
-                eval_seed,
-                score,
-            });
-            files.extend(out.files);
+        };
+        match evaluate_run(grid, &task, &run, env, &protocol, opts) {
+            Ok((scores, written)) => {
+                runs.extend(scores);
+                files.extend(written);
+            }
+            Err(e) => left_out.push((task.index, e.to_string())),
         }
     }
     let evaluated = runs.len();
-    let (table, csv) = table(grid, &protocol.eval_seeds, &runs);
+    if runs.is_empty() {
+        return Ok(Gathered {
+            unfinished,
+            left_out,
+            evaluated,
+            table: String::new(),
+            files,
+        });
+    }
+    let (mut table, csv) = table(grid, &protocol.eval_seeds, &runs);
+    table.push_str(&notes(grid, &left_out, &unfinished));
     let dir = grid.out.join("gather");
     std::fs::create_dir_all(&dir).map_err(|e| SweepError::Io(format!("{}: {e}", dir.display())))?;
     let existing = safety_envs::output::Existing::from_force(opts.force);
@@ -142,10 +111,135 @@ pub fn gather(grid: &SweepGrid, opts: &GatherOptions) -> Result<Gathered, SweepE
     }
     Ok(Gathered {
         unfinished,
+        left_out,
         evaluated,
         table,
         files,
     })
+}
+
+/// Refuses, before any evaluation, to gather into `OUT/gather` when an
+/// earlier gather's evaluations or table are there, unless `force`: the
+/// refusal used to come after every run was evaluated, at the table.
+fn check_earlier_gather(grid: &SweepGrid, force: bool) -> Result<(), SweepError> {
+    let dir = grid.out.join("gather");
+    let held = std::fs::read_dir(&dir).is_ok_and(|mut d| d.next().is_some());
+    if force || !held {
+        return Ok(());
+    }
+    Err(SweepError::Io(format!(
+        "{}: it holds an earlier --gather's evaluations or table: pass --force to evaluate \
+         again and replace them, or move the folder away; nothing was evaluated",
+        dir.display()
+    )))
+}
+
+/// The last checkpoint of `run` (task `task`'s) evaluated at every
+/// evaluation seed of the protocol: its scores and the files written.
+fn evaluate_run(
+    grid: &SweepGrid,
+    task: &Task,
+    run: &std::path::Path,
+    env: EnvName,
+    protocol: &GatherProtocol,
+    opts: &GatherOptions,
+) -> Result<(Vec<RunScore>, Vec<PathBuf>), SweepError> {
+    let (mut scores, mut files) = (Vec::new(), Vec::new());
+    for &eval_seed in &protocol.eval_seeds {
+        let mut agent = crate::eval::load::load_checkpoint(run, env)?;
+        agent.label = Some(grid.task_name(task));
+        let eval = crate::eval::command::EvalOptions {
+            env,
+            tasks: protocol.tasks.unwrap_or(opts.tasks),
+            episodes: protocol.episodes.or(opts.episodes),
+            budgets: None,
+            n_budgets: protocol.n_budgets.unwrap_or(opts.n_budgets),
+            rtg: 1.0,
+            sweep: false,
+            random: protocol.random,
+            render: false,
+            out: grid
+                .out
+                .join("gather")
+                .join(grid.task_name(task))
+                .join(format!("eval_seed{eval_seed}")),
+            eval_seed,
+            batch: 256,
+            threads: opts.threads,
+            greedy: false,
+            max_episode_steps: None,
+            progress: false,
+            in_distribution: false,
+            seed_torch: true,
+            command: format!(
+                "icrl sweep --gather (task {}, evaluation seed {eval_seed})",
+                task.index
+            ),
+            force: opts.force,
+        };
+        let out = crate::eval::command::run(vec![agent], &eval)?;
+        let report = |random: bool| -> Result<serde_json::Value, SweepError> {
+            let path = out
+                .files
+                .iter()
+                .find(|f| {
+                    f.extension().is_some_and(|e| e == "json")
+                        && f.file_name()
+                            .is_some_and(|n| n.to_string_lossy().starts_with("random_"))
+                            == random
+                })
+                .ok_or_else(|| {
+                    SweepError::Io(format!("task {}: eval wrote no JSON report", task.index))
+                })?;
+            std::fs::read_to_string(path)
+                .ok()
+                .and_then(|t| serde_json::from_str(&t).ok())
+                .ok_or_else(|| SweepError::Io(format!("{}: unreadable report", path.display())))
+        };
+        let mut score = Score::of(&report(false)?["summary"]);
+        if protocol.random {
+            score.random_within = Score::of(&report(true)?["summary"]).within;
+        }
+        scores.push(RunScore {
+            label: task.label(),
+            seed: task.seed,
+            eval_seed,
+            score,
+        });
+        files.extend(out.files);
+    }
+    Ok((scores, files))
+}
+
+/// The table's notes: the tasks left out (each by name, with why) and
+/// those not finished, so a table of fewer runs says which are missing.
+fn notes(grid: &SweepGrid, left_out: &[(usize, String)], unfinished: &[(usize, String)]) -> String {
+    let tasks = grid.tasks();
+    let name = |index: usize| {
+        tasks
+            .iter()
+            .find(|t| t.index == index)
+            .map_or(format!("task {index}"), |t| {
+                format!("task {index} ({}, seed {})", t.label(), t.seed)
+            })
+    };
+    let mut md = String::new();
+    for (title, list) in [
+        (
+            "Left out: finished runs that could not be evaluated",
+            left_out,
+        ),
+        ("Not finished, not in the table", unfinished),
+    ] {
+        if list.is_empty() {
+            continue;
+        }
+        let _ = write!(md, "\n{title}:\n\n");
+        for (index, why) in list {
+            let _ = writeln!(md, "- {}: {why}", name(*index));
+        }
+    }
+    md
 }
 
 /// What the claims are judged on, read off one evaluation's summary: the
