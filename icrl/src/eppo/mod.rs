@@ -421,17 +421,14 @@ impl Learner {
     }
 
     /// The penalty's state for a progress or summary line: the over-budget
-    /// price under the forms that charge one, the termination's reward under
+    /// price under the forms that charge one, the termination under
     /// `terminate`, lambda under the others.
     pub fn penalty_reading(&self) -> String {
         match self.cfg.constraint.penalty {
             PenaltyForm::Excess | PenaltyForm::Saute => {
                 format!("over-budget price {:.2}", self.over_budget_price())
             }
-            PenaltyForm::Terminate => format!(
-                "overspending ends the value (termination reward {:.2})",
-                self.cfg.constraint.termination_reward
-            ),
+            PenaltyForm::Terminate => "overspending ends the value".to_string(),
             PenaltyForm::Hindsight | PenaltyForm::Hinge => {
                 format!("lambda {:.4}", self.multiplier.lambda)
             }

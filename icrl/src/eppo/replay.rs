@@ -387,7 +387,7 @@ fn dense_reward(t: &Trajectory, step: usize, spec: &NetSpec, cfg: &EppoConfig) -
 }
 
 /// For each step of `t`, true where the termination ends the critics'
-/// value ([`EppoConfig::termination_reward`]): in each episode, the first step
+/// value (`penalty = "terminate"`): in each episode, the first step
 /// over budget that pays a cost, the step that overspends.
 pub(super) fn value_end_steps(t: &Trajectory) -> Vec<bool> {
     let mut ended_in = None;
@@ -445,10 +445,9 @@ pub(super) enum BudgetInTargets {
     /// Saute and the excess price: the reward of every step of an episode
     /// once its cost has passed its budget (CTG after the step below 0).
     OverBudget(OverBudget),
-    /// `penalty = "terminate"`: the reward added where an episode's cost
-    /// first passes its budget, the step at which the reward and novelty
-    /// critics' value ends.
-    EndsValue(f32),
+    /// `penalty = "terminate"`: the reward and novelty critics' value ends
+    /// where an episode's cost first passes its budget.
+    EndsValue,
 }
 
 impl Shaping {
@@ -460,12 +459,9 @@ impl Shaping {
         }
     }
 
-    /// The termination's reward, under `penalty = "terminate"`.
-    pub(super) fn value_end_reward(&self) -> Option<f32> {
-        match self.budget {
-            BudgetInTargets::EndsValue(r) => Some(r),
-            _ => None,
-        }
+    /// Whether overspending ends the critics' value (`penalty = "terminate"`).
+    pub(super) fn ends_value(&self) -> bool {
+        matches!(self.budget, BudgetInTargets::EndsValue)
     }
 }
 
@@ -563,9 +559,7 @@ impl Columns {
         } else {
             vec![0.0; t.len()]
         };
-        let value_ends = shaping
-            .value_end_reward()
-            .map(|end_reward| (end_reward, value_end_steps(t)));
+        let value_ends = shaping.ends_value().then(|| value_end_steps(t));
         // The goal is known once found, or throughout when shown.
         let mut found =
             cfg.goal.goal_in_observation && t.obs.get(..spec.obs_dim).is_some_and(GoalShown::shows);
@@ -577,7 +571,6 @@ impl Columns {
             }
             let step = s + i;
             self.push_step(t, step, spec, cfg);
-            let scale = cfg.targets.reward_scale as f32;
             (self.rew[k], self.novelty_rew[k]) =
                 critic_rewards(t, step, novel[step], found, spec, cfg, shaping);
             self.cost[k] = t.costs[step];
@@ -592,10 +585,7 @@ impl Columns {
             self.goal_known[k] = if found { 1.0 } else { 0.0 };
             found |= t.terminated[step];
             let (has_target, mut bootstraps, cost_bootstraps) = td_masks(cfg, t, step, i + 1 < len);
-            if let Some((end_reward, ends)) = &value_ends
-                && ends[step]
-            {
-                self.rew[k] += end_reward * scale;
+            if value_ends.as_ref().is_some_and(|ends| ends[step]) {
                 bootstraps = false;
             }
             self.td_valid[k] = if has_target { 1.0 } else { 0.0 };
@@ -858,9 +848,7 @@ impl EppoConfig {
                     cost_price,
                     pays_novelty: self.novelty.novelty_budget != NoveltyBudget::WithinBudget,
                 }),
-                PenaltyForm::Terminate => {
-                    BudgetInTargets::EndsValue(self.constraint.termination_reward as f32)
-                }
+                PenaltyForm::Terminate => BudgetInTargets::EndsValue,
                 PenaltyForm::Hindsight | PenaltyForm::Hinge => BudgetInTargets::Absent,
             },
         }

@@ -59,12 +59,6 @@ pub struct ConstraintConfig {
     /// dw1 -> dw1p -> dw1q).
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub over_budget_price_schedule: Vec<PriceChange>,
-    /// `penalty = "terminate"`: the reward the critics see on top of the step
-    /// where their value ends, the step that overspends. Sun et al.'s r_e,
-    /// at most 0: every reward here is at least 0, so ending the value
-    /// already costs what the rest of the trajectory was worth.
-    #[serde(default)]
-    pub termination_reward: f64,
 }
 
 impl ConstraintConfig {
@@ -80,11 +74,6 @@ impl ConstraintConfig {
                 "over_budget_cost_price",
                 self.over_budget_cost_price,
                 Range::NON_NEGATIVE,
-            ),
-            (
-                "termination_reward",
-                self.termination_reward,
-                Range::new(f64::NEG_INFINITY, true, 0.0, false),
             ),
         ])
         .or_else(bad)?;
@@ -114,7 +103,7 @@ impl ConstraintConfig {
     }
 
     /// What each penalty form takes: the multiplier, the price, the
-    /// termination's reward, the per-episode multipliers.
+    /// per-episode multipliers.
     fn validate_penalty(&self) -> Result<(), EppoError> {
         let priced_in_targets = matches!(
             self.penalty,
@@ -138,14 +127,6 @@ impl ConstraintConfig {
                 "over_budget_cost_price = {} is charged only under penalty = \"excess\" or \
                  \"saute\": set one of them, or set over_budget_cost_price = 0",
                 self.over_budget_cost_price
-            ));
-        }
-        if self.termination_reward != 0.0 && self.penalty != PenaltyForm::Terminate {
-            return bad(format!(
-                "termination_reward = {} is the reward where penalty = \"terminate\" ends the \
-                 critics' value, and penalty is not \"terminate\": set it, or drop \
-                 termination_reward",
-                self.termination_reward
             ));
         }
         if self.penalty == PenaltyForm::Excess && self.over_budget_cost_price <= 0.0 {
@@ -235,7 +216,8 @@ pub enum PenaltyForm {
     /// Solving Early Terminated MDP"), over the K episodes: no multiplier and
     /// no actor penalty; the step that takes an episode's cost past its
     /// budget ends the value in the reward and novelty critics' targets (its
-    /// own reward plus `termination_reward`, nothing bootstrapped past it).
+    /// own reward, nothing bootstrapped past it: Sun et al.'s r_e at 0, as
+    /// every reward here is at least 0; pt2's -1 did not help).
     /// Overspending then forfeits every later episode's return, what a search
     /// past the budget would learn included: under a price, that knowledge
     /// kept search through hazards worth its cost (Point, pc1-pc7). The

@@ -10,7 +10,7 @@ use super::{EppoConfig, EppoError};
 /// and the last commit that had it (`git checkout` it to rerun such a config). A config written before the
 /// removal still loads where it holds one at that value; one that used it is
 /// refused by name.
-pub const RETIRED: [(&str, Option<&str>, &str); 21] = [
+pub const RETIRED: [(&str, Option<&str>, &str); 22] = [
     // The PID Lagrangian (results/eppo_darkroom_budget, issue 18).
     ("lambda_kp", Some("0.0"), PID_AND_LATE_RATE),
     ("lambda_kd", Some("0.0"), PID_AND_LATE_RATE),
@@ -91,6 +91,9 @@ pub const RETIRED: [(&str, Option<&str>, &str); 21] = [
         SEARCH_AND_PRICE_VARIANTS,
     ),
     ("repeat_cost_radius", Some("0.0"), SEARCH_AND_PRICE_VARIANTS),
+    // A reward at the step whose overspending ends the value under
+    // penalty = "terminate" (Point pt2: -1 did not help pt1's 0).
+    ("termination_reward", Some("0.0"), TERMINATION_REWARD),
 ];
 
 const PID_AND_LATE_RATE: &str = "b1f1bdb663c9833aefcfffa79f077dcd3d455b0b";
@@ -98,6 +101,7 @@ const ACTOR_AND_ANNEAL: &str = "db40554803feeb6dadd0adc8842796b03fa193c4";
 const HAZARD_RECALL: &str = "8a5cee241507924037a24029831611b616eec709";
 const NOVELTY_SHAPES_AND_RAMP: &str = "1096eed9892161592b2878611d3cef89371e88d3";
 const SEARCH_AND_PRICE_VARIANTS: &str = "9441cf84b763fafdac321359355efe089241a33d";
+const TERMINATION_REWARD: &str = "a90f1fd2ff672362480194053975e382ab8de2f8";
 
 /// Drops the [`RETIRED`] settings of `table`, flat or in a section, that
 /// hold their inert value; refuses one that does not, naming it.
@@ -220,7 +224,6 @@ impl EppoConfig {
                 "over_budget_cost_price",
                 "saute_cost_price",
                 "over_budget_price_schedule",
-                "termination_reward",
             ],
         ),
         (

@@ -289,11 +289,10 @@ fn excess_price_charges_each_unit_past_the_budget_and_keeps_the_goal() {
 fn termination_ends_the_critics_value_at_the_step_that_overspends() {
     let (t, spec) = overspent_walk();
     let mut cfg = priced_from_update_100(PenaltyForm::Terminate);
-    cfg.constraint.termination_reward = -0.5;
     cfg.validate().unwrap();
-    assert_eq!(cfg.shaping(99, None).value_end_reward(), None);
+    assert!(!cfg.shaping(99, None).ends_value());
     let shaping = cfg.shaping(100, Some(100));
-    assert_eq!(shaping.value_end_reward(), Some(-0.5));
+    assert!(shaping.ends_value());
     assert_eq!(shaping.over_budget(), None, "no price per unit");
     let batch = |shaping: Shaping| {
         let mut rng = ChaCha8Rng::seed_from_u64(0);
@@ -303,9 +302,11 @@ fn termination_ends_the_critics_value_at_the_step_that_overspends() {
     assert_eq!(to_vec(&plain.tokens), to_vec(&ended.tokens));
     let scale = cfg.targets.reward_scale as f32;
     let unscaled: Vec<f32> = to_vec(&ended.rewards).iter().map(|r| r / scale).collect();
+    // Rewards as paid: the goal reached already over budget (step 4) keeps
+    // its reward.
+    assert_eq!(unscaled, vec![0.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]);
     // Step 2 (episode 0) and step 3 (episode 1) take their episodes past the
-    // budget; the goal reached already over budget (step 4) keeps its reward.
-    assert_eq!(unscaled, vec![0.0, 0.0, -0.5, -0.5, 1.0, 0.0, 0.0, 0.0]);
+    // budget: the value ends there.
     let (before, after) = (to_vec(&plain.bootstrap), to_vec(&ended.bootstrap));
     for step in 0..t.len() {
         let expected = if step == 2 || step == 3 {
@@ -334,17 +335,9 @@ fn termination_ends_the_critics_value_at_the_step_that_overspends() {
         "{err}"
     );
     cfg.constraint.lambda_lr = 0.0;
-    cfg.constraint.termination_reward = 0.5;
-    let err = cfg.validate().unwrap_err().to_string();
-    assert!(err.contains("termination_reward"), "{err}");
-    cfg.constraint.termination_reward = -0.5;
     cfg.constraint.over_budget_cost_price = 1.0;
     let err = cfg.validate().unwrap_err().to_string();
     assert!(err.contains("over_budget_cost_price = 1"), "{err}");
-    cfg.constraint.over_budget_cost_price = 0.0;
-    cfg.constraint.penalty = PenaltyForm::Hinge;
-    let err = cfg.validate().unwrap_err().to_string();
-    assert!(err.contains("termination_reward = -0.5"), "{err}");
 }
 
 #[test]
@@ -773,6 +766,7 @@ fn configs_from_before_the_retirement_load_or_are_refused_by_name() {
         ("novelty_through_success", "true"),
         ("saute_unsafe_reward", "0.0"),
         ("repeat_cost_radius", "0.4"),
+        ("termination_reward", "-1.0"),
     ] {
         let mut used = pe1.clone();
         EppoConfig::apply_sets(&mut used, &[format!("{key}={value}")]).unwrap();
@@ -791,6 +785,9 @@ fn configs_from_before_the_retirement_load_or_are_refused_by_name() {
             assert!(e.to_string().contains("lambda_kp = 0.5"), "{e}");
         }
     }
+    let pt2 = table("eppo_point_ladder/pt2_ps8_terminate_reward-1/config.toml");
+    let err = EppoConfig::from_table("pt2", pt2).unwrap_err().to_string();
+    assert!(err.contains("termination_reward = -1"), "{err}");
     let late = table("eppo_darkroom_budget/lr1_late_rate/config.toml");
     let err = EppoConfig::from_table("lr1", late).unwrap_err().to_string();
     assert!(err.contains("violation_signal = \"late_rate\""), "{err}");
