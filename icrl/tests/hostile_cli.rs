@@ -674,6 +674,161 @@ fn a_full_disk_is_named_before_training_and_when_a_dataset_fills_it() {
         .filter(|n| !n.starts_with("filler") && n != "runs")
         .collect();
     assert!(left.is_empty(), "left behind: {left:?}");
+    // A merge that fills the disk likewise (trial 3, weak: HDF5's
+    // `18446744073709551615 bytes`), whatever room its first writes find.
+    for filler in std::fs::read_dir(&mnt).unwrap() {
+        let filler = filler.unwrap().path();
+        if filler.is_file() {
+            std::fs::remove_file(filler).unwrap();
+        }
+    }
+    let shards: Vec<String> = (0..2)
+        .map(|i| {
+            let shard = s(&mnt.join(format!("s{i}.h5")));
+            let part = format!("{i}/2");
+            succeeded(&icrl(&[
+                "dataset",
+                "--env",
+                "darkroom",
+                "--out",
+                &shard,
+                "--tasks",
+                "2",
+                "--steps",
+                "300",
+                "--cost-limits",
+                "0",
+                "--threads",
+                "1",
+                "--shard",
+                &part,
+            ]));
+            shard
+        })
+        .collect();
+    let merged = mnt.join("all.h5");
+    for room in [3_000, 6_000, 9_000, 12_000] {
+        disk.fill_to(room);
+        let o = icrl(&[
+            "dataset",
+            "merge",
+            "--out",
+            &s(&merged),
+            &shards[0],
+            &shards[1],
+        ]);
+        refused(&o, "the disk is full");
+        let err = String::from_utf8_lossy(&o.stderr);
+        assert!(!err.contains("18446744073709551615"), "{room}: {err}");
+        let left: Vec<_> = std::fs::read_dir(&mnt)
+            .unwrap()
+            .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+            .filter(|n| !n.starts_with("filler") && !n.starts_with('s') && n != "runs")
+            .collect();
+        assert!(left.is_empty(), "{room}: left behind: {left:?}");
+    }
+    drop(disk);
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// Trial 3, weak: a disk that fills while a run trains ended it with the
+/// OS's message twice (`metrics.jsonl: No space left on device (os error
+/// 28): No space left on device (os error 28)`), without the last good
+/// checkpoint or the command that resumes it. Now one message names the
+/// full disk, the last good checkpoint and the resume command, and the run
+/// resumes from it once there is room.
+#[test]
+fn a_disk_that_fills_mid_run_names_the_last_good_checkpoint_and_the_resume_command() {
+    let dir = tmp("full-mid-run");
+    let mnt = dir.join("disk");
+    std::fs::create_dir_all(&mnt).unwrap();
+    let Some(disk) = SmallDisk::mount(&mnt, 8 << 20) else {
+        eprintln!("cannot mount a tmpfs here (not root?): the full-disk cases need one; skipped");
+        return;
+    };
+    let runs = mnt.join("runs");
+    let mut args = tiny_eppo_args(&runs);
+    args.extend(
+        [
+            "--set",
+            "total_updates=100000",
+            "--set",
+            "checkpoint_every=20",
+        ]
+        .map(String::from),
+    );
+    let child = Command::new(env!("CARGO_BIN_EXE_icrl"))
+        .args(&args)
+        .stdout(std::process::Stdio::null())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let started = std::time::Instant::now();
+    let run = loop {
+        let run = std::fs::read_dir(&runs)
+            .ok()
+            .and_then(|mut d| d.next())
+            .map(|e| e.unwrap().path());
+        if let Some(run) = run.filter(|r| r.join("checkpoints/step_20").is_dir()) {
+            break run;
+        }
+        assert!(started.elapsed().as_secs() < 120, "no first checkpoint");
+        std::thread::sleep(std::time::Duration::from_millis(50));
+    };
+    // Filled to the last byte: the run writes meanwhile, so the filler's
+    // own write may end short on the full disk.
+    let filler = mnt.join("filler");
+    let free = safety_envs::output::free_bytes(&mnt).unwrap() as usize;
+    let _ = std::fs::write(&filler, vec![7u8; free + (1 << 20)]);
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    assert_eq!(out.status.code(), Some(1), "{err}");
+    assert!(err.contains("the disk is full"), "{err}");
+    assert!(
+        err.contains(&format!(
+            "The last good checkpoint is {}/checkpoints/step_",
+            s(&run)
+        )) && err.contains("(resume from it with --resume and room on its disk)"),
+        "{err}"
+    );
+    assert!(
+        err.contains(&format!(
+            "resume with: icrl pretrain --env darkroom --method eppo --resume {}",
+            s(&run)
+        )),
+        "{err}"
+    );
+    assert!(
+        !err.contains("os error 28") && !err.contains("No space left on device"),
+        "the OS's account, once at most, not twice: {err}"
+    );
+    assert!(!err.contains("panicked"), "{err}");
+    let left: Vec<_> = std::fs::read_dir(run.join("checkpoints"))
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.starts_with(".tmp"))
+        .collect();
+    assert!(left.is_empty(), "no partial checkpoint: {left:?}");
+    // With room again, the run resumes from its last good checkpoint.
+    for filler in std::fs::read_dir(&mnt).unwrap() {
+        let filler = filler.unwrap().path();
+        if filler.is_file() {
+            std::fs::remove_file(filler).unwrap();
+        }
+    }
+    let (r, last) = (s(&run), icrl::checkpoint::RunDir::open(&run).unwrap());
+    let last = last.latest_checkpoint().unwrap().unwrap();
+    let done: u64 = last
+        .to_string_lossy()
+        .rsplit("step_")
+        .next()
+        .unwrap()
+        .parse()
+        .unwrap();
+    let more = format!("total_updates={}", done + 2);
+    succeeded(&icrl(&[
+        "pretrain", "--env", "darkroom", "--resume", &r, "--set", &more,
+    ]));
     drop(disk);
     std::fs::remove_dir_all(&dir).unwrap();
 }

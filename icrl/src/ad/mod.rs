@@ -357,7 +357,14 @@ impl MetricsLog {
             seconds: self.started.elapsed().as_secs_f64(),
         };
         let line = serde_json::to_string(&m).map_err(|e| io_err(&self.dir, e))?;
-        writeln!(self.file, "{line}").map_err(|e| io_err(&self.path, e))?;
+        // A failed write (a full disk) stops the run naming its last good
+        // checkpoint.
+        writeln!(self.file, "{line}").map_err(|e| {
+            let run = RunDir {
+                path: self.dir.clone(),
+            };
+            AdError::Checkpoint(run.stopped_writing_with(self.path.clone(), e.to_string()))
+        })?;
         if self.first.is_none() {
             self.first = Some(m.clone());
         }

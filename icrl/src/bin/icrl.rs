@@ -456,7 +456,8 @@ fn pretrain(mut args: PretrainArgs) -> anyhow::Result<()> {
     match (train_or_resume(args), forked) {
         (Err(e), Some(forked)) if interrupted(&e).is_none() && forked.remove_if_untrained() => {
             Err(anyhow::anyhow!(
-                "{e:#}; the fork {} was removed: nothing was trained in it",
+                "{}; the fork {} was removed: nothing was trained in it",
+                report(&e),
                 forked.run.path.display()
             ))
         }
@@ -603,10 +604,51 @@ fn pretrain_with_stop(args: PretrainArgs) -> ExitCode {
             ExitCode::from(icrl::stop::EXIT_INTERRUPTED)
         }
         (Err(e), None) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", report(&e));
+            // A run stopped by a failed write (a full disk) continues from
+            // its last good checkpoint once there is room.
+            if let Some(checkpoint) = last_good(&e) {
+                eprintln!(
+                    "resume with: {}",
+                    icrl::run_summary::resume_command(
+                        &env,
+                        &method,
+                        checkpoint,
+                        std::env::var_os(icrl::run_summary::VIA_XTASK_ENV).is_some()
+                    )
+                );
+            }
             ExitCode::FAILURE
         }
     }
+}
+
+/// The last good checkpoint of a run stopped by a failed write.
+fn last_good(e: &anyhow::Error) -> Option<&std::path::Path> {
+    let checkpoint = match (
+        e.downcast_ref::<icrl::eppo::EppoError>(),
+        e.downcast_ref::<icrl::ad::AdError>(),
+    ) {
+        (Some(icrl::eppo::EppoError::Checkpoint(c)), _) => c,
+        (_, Some(icrl::ad::AdError::Checkpoint(c))) => c,
+        _ => e.downcast_ref::<icrl::checkpoint::CheckpointError>()?,
+    };
+    checkpoint.last_good_checkpoint()
+}
+
+/// An error with its causes, each said once: a cause whose words the
+/// message already holds (an OS error the message quotes) is not repeated
+/// (`No space left on device (os error 28): No space left on device (os
+/// error 28)`).
+fn report(e: &anyhow::Error) -> String {
+    let mut text = e.to_string();
+    for cause in e.chain().skip(1) {
+        let cause = cause.to_string();
+        if !text.contains(&cause) {
+            text = format!("{text}: {cause}");
+        }
+    }
+    text
 }
 
 fn main() -> ExitCode {
@@ -653,7 +695,7 @@ fn main() -> ExitCode {
     match result {
         Ok(()) => ExitCode::SUCCESS,
         Err(e) => {
-            eprintln!("error: {e:#}");
+            eprintln!("error: {}", report(&e));
             ExitCode::FAILURE
         }
     }

@@ -5,7 +5,7 @@ use std::fs;
 use std::io::Write;
 use std::path::{Path, PathBuf};
 
-use super::{CheckpointError, io};
+use super::{CheckpointError, RunDir, io};
 
 /// Appends one JSON object per line to `metrics.jsonl`.
 #[derive(Debug)]
@@ -95,7 +95,17 @@ impl MetricsWriter {
             });
         }
         let line = record.to_string();
-        writeln!(self.file, "{line}").map_err(io(&self.path))?;
-        self.file.flush().map_err(io(&self.path))
+        writeln!(self.file, "{line}")
+            .and_then(|()| self.file.flush())
+            .map_err(|e| self.stopped(e))
+    }
+
+    /// A failed write while training (a full disk): the error that stops
+    /// the run, naming its latest checkpoint ([`RunDir::stopped_writing`]).
+    fn stopped(&self, e: std::io::Error) -> CheckpointError {
+        let run = RunDir {
+            path: self.path.parent().unwrap_or(Path::new(".")).to_path_buf(),
+        };
+        run.stopped_writing_with(self.path.clone(), e.to_string())
     }
 }

@@ -70,12 +70,25 @@ pub enum CheckpointError {
     /// A checkpoint that could not be written: nothing of it is left, and
     /// the last good one is named.
     #[error(
-        "{path}: writing this checkpoint failed: {problem}; nothing of it was kept. {last_good}"
+        "{path}: writing this checkpoint failed: {problem}; nothing of it was kept. {}",
+        crate::checkpoint::last_good(.last_good, "room on its disk")
     )]
     WriteFailed {
         path: PathBuf,
         problem: String,
-        last_good: String,
+        last_good: Option<PathBuf>,
+    },
+    /// A run's file (its metrics) that could not be written while training
+    /// (a full disk): training stopped, and the last good checkpoint is
+    /// named ([`RunDir::stopped_writing`]).
+    #[error(
+        "{path}: writing it failed: {problem}; training stopped. {}",
+        crate::checkpoint::last_good(.last_good, "room on its disk")
+    )]
+    StoppedWriting {
+        path: PathBuf,
+        problem: String,
+        last_good: Option<PathBuf>,
     },
     #[error("{path}: checkpoint is for {what} {found:?}, this run has {expected:?}; {fix}")]
     Mismatch {
@@ -85,6 +98,19 @@ pub enum CheckpointError {
         expected: String,
         fix: String,
     },
+}
+
+impl CheckpointError {
+    /// The last good checkpoint of a run that stopped because a write
+    /// failed ([`CheckpointError::WriteFailed`],
+    /// [`CheckpointError::StoppedWriting`]): the one to resume from.
+    pub fn last_good_checkpoint(&self) -> Option<&Path> {
+        match self {
+            CheckpointError::WriteFailed { last_good, .. }
+            | CheckpointError::StoppedWriting { last_good, .. } => last_good.as_deref(),
+            _ => None,
+        }
+    }
 }
 
 fn io(path: &Path) -> impl FnOnce(std::io::Error) -> CheckpointError + '_ {

@@ -122,7 +122,7 @@ impl RunDir {
             CheckpointError::WriteFailed {
                 path: dest.clone(),
                 problem: safety_envs::output::full_disk(&root).unwrap_or_else(|| e.to_string()),
-                last_good: last_good(&self.latest_checkpoint().ok().flatten(), "room on its disk"),
+                last_good: self.latest_checkpoint().ok().flatten(),
             }
         };
         // Not create_dir_all: a run folder deleted meanwhile is not remade.
@@ -181,6 +181,29 @@ impl RunDir {
             remove_checkpoint(dest)?;
         }
         fs::rename(tmp, dest).map_err(io(dest))
+    }
+
+    /// A write to one of the run's files (`metrics.jsonl`) that failed
+    /// while training, as the error that stops it: a full disk named as
+    /// such, not the OS's account twice, and the run's latest checkpoint
+    /// named as the one to resume from. Other errors pass through.
+    pub fn stopped_writing(&self, e: CheckpointError) -> CheckpointError {
+        match e {
+            CheckpointError::Io { path, source } => {
+                self.stopped_writing_with(path, source.to_string())
+            }
+            other => other,
+        }
+    }
+
+    /// [`RunDir::stopped_writing`] of a failed write to `path` said as
+    /// `problem`.
+    pub fn stopped_writing_with(&self, path: PathBuf, problem: String) -> CheckpointError {
+        CheckpointError::StoppedWriting {
+            problem: safety_envs::output::full_disk(&self.path).unwrap_or(problem),
+            path,
+            last_good: self.latest_checkpoint().ok().flatten(),
+        }
     }
 
     /// Removes the checkpoints `keep` does not retain.

@@ -95,13 +95,12 @@ pub fn merge(
     };
     let steps: usize = parts.iter().map(|p| p.steps).sum();
     let n_histories: usize = parts.iter().map(|p| p.histories).sum();
-    let err = |e: hdf5::Error| HistoryError::new(out, Problem::Unreadable(e.to_string()));
     output::write_file(out, existing, |tmp| {
         write_views(tmp, &info, &parts, steps, n_histories)
             .and_then(|()| {
                 histories::seal(tmp).map_err(|e| hdf5::Error::from(e.to_string().as_str()))
             })
-            .map_err(err)
+            .map_err(|e| histories::write_error(out, tmp, e))
     })?;
     Ok(MergeReport {
         out: out.to_path_buf(),

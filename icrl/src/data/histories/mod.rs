@@ -76,7 +76,7 @@ pub use history::{DatasetInfo, History, HistoryFile, Shard};
 pub use read::read_histories;
 pub(crate) use seal::{SHARDS_ATTR, ShardRecord, USER_BLOCK, seal, verify_seal};
 pub use write::{check_output_path, temp_path, write_histories, write_histories_to};
-pub(crate) use write::{put_text, write_attrs};
+pub(crate) use write::{put_text, write_attrs, write_error};
 
 /// Version of the layout above; readers refuse any other.
 pub const FORMAT_VERSION: u32 = 1;

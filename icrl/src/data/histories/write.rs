@@ -108,12 +108,19 @@ pub fn write_histories_to(
     output::write_file(path, existing, |tmp| {
         write_raw(tmp, file, n_obstacles)
             .and_then(|()| seal(tmp).map_err(|e| hdf5::Error::from(e.to_string().as_str())))
-            // HDF5 words a full disk as a short write of 2^64 - 1 bytes.
-            .map_err(|e| match output::full_disk(tmp) {
-                Some(full) => err(Problem::Output(full)),
-                None => err(Problem::Unreadable(e.to_string())),
-            })
+            .map_err(|e| write_error(path, tmp, e))
     })
+}
+
+/// An HDF5 error while writing `tmp`, the temporary file of `path`, as the
+/// error to show: a full disk named as such (HDF5 words it as a short write
+/// of 2^64 - 1 bytes, `18446744073709551615`), else HDF5's message. The
+/// writer and `dataset merge` share it.
+pub(crate) fn write_error(path: &Path, tmp: &Path, e: hdf5::Error) -> HistoryError {
+    match output::full_disk(tmp) {
+        Some(full) => HistoryError::new(path, Problem::Output(full)),
+        None => HistoryError::new(path, Problem::Unreadable(e.to_string())),
+    }
 }
 
 fn write_raw(tmp: &Path, file: &HistoryFile, n_obstacles: usize) -> hdf5::Result<()> {
