@@ -5,10 +5,15 @@
 //! Only commands that poll [`requested`] install the handler (`icrl
 //! pretrain`); elsewhere Ctrl-C keeps its default meaning.
 
+use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};
 
 /// Signals received since the handler was installed (or [`clear`]).
 static SIGNALS: AtomicUsize = AtomicUsize::new(0);
+
+/// Once the work is saved ([`saved`]): what the first signal says before it
+/// ends the process at once.
+static SAVED: Mutex<Option<String>> = Mutex::new(None);
 
 /// Exit code of a run stopped by a signal (128 + SIGINT, as shells report it).
 pub const EXIT_INTERRUPTED: u8 = 130;
@@ -18,6 +23,12 @@ pub const EXIT_INTERRUPTED: u8 = 130;
 pub fn install() -> Result<(), String> {
     ctrlc::set_handler(|| {
         let n = SIGNALS.fetch_add(1, Ordering::SeqCst) + 1;
+        let saved = SAVED.lock().map_or(None, |m| m.clone());
+        if let Some(message) = saved {
+            eprintln!("\nstop requested: {message}");
+            // SAFETY: as below; everything worth keeping is on disk.
+            unsafe { libc::_exit(i32::from(EXIT_INTERRUPTED)) }
+        }
         if n == 1 {
             eprintln!(
                 "\nstop requested: finishing the current update and writing a checkpoint \
@@ -35,6 +46,16 @@ pub fn install() -> Result<(), String> {
     .map_err(|e| format!("cannot install the SIGINT/SIGTERM handler: {e}"))
 }
 
+/// Declares the work saved (training over, its last checkpoint written):
+/// from now on a signal prints `message` (what is true: the checkpoint, what
+/// is skipped) and ends the process at once with [`EXIT_INTERRUPTED`],
+/// instead of promising an update and a checkpoint that will not come.
+pub fn saved(message: String) {
+    if let Ok(mut m) = SAVED.lock() {
+        *m = Some(message);
+    }
+}
+
 /// True once a stop has been asked for.
 pub fn requested() -> bool {
     SIGNALS.load(Ordering::SeqCst) > 0
@@ -45,7 +66,10 @@ pub fn request() {
     SIGNALS.fetch_add(1, Ordering::SeqCst);
 }
 
-/// Forgets earlier requests.
+/// Forgets earlier requests (and [`saved`]).
 pub fn clear() {
     SIGNALS.store(0, Ordering::SeqCst);
+    if let Ok(mut m) = SAVED.lock() {
+        *m = None;
+    }
 }

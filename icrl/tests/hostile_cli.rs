@@ -833,6 +833,67 @@ fn a_disk_that_fills_mid_run_names_the_last_good_checkpoint_and_the_resume_comma
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
+/// Trial 3, weak: SIGINT during the in-context check at the end of a run
+/// printed "finishing the current update and writing a checkpoint" (training
+/// was over, its checkpoint written) and the check went on. Now the signal
+/// says what is true, that the checkpoint is written and the summary is
+/// skipped, with the command that evaluates it, and ends the process.
+#[test]
+fn a_stop_after_training_says_the_checkpoint_is_written_and_skips_the_check() {
+    use std::io::BufRead;
+    let dir = tmp("stop-in-check");
+    let mut args = tiny_eppo_args(&dir);
+    // Long episodes in a long context: the check takes seconds.
+    for set in [
+        "max_episode_steps=200",
+        "k_min=1",
+        "k_max=1",
+        "n_envs=1",
+        "model.max_len=4000",
+    ] {
+        args.extend(["--set".to_string(), set.to_string()]);
+    }
+    let mut child = Command::new(env!("CARGO_BIN_EXE_icrl"))
+        .args(&args)
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let mut stdout = std::io::BufReader::new(child.stdout.take().unwrap());
+    let mut printed = String::new();
+    while !printed.contains(" finished: ") {
+        assert!(stdout.read_line(&mut printed).unwrap() > 0, "{printed}");
+    }
+    // SAFETY: kill(2) on the child this test started.
+    unsafe { libc::kill(child.id() as i32, libc::SIGINT) };
+    let mut rest = String::new();
+    std::io::Read::read_to_string(&mut stdout, &mut rest).unwrap();
+    let out = child.wait_with_output().unwrap();
+    let err = String::from_utf8_lossy(&out.stderr);
+    let run = std::fs::read_dir(&dir)
+        .unwrap()
+        .next()
+        .unwrap()
+        .unwrap()
+        .path();
+    let checkpoint = run.join("checkpoints/step_2");
+    assert!(checkpoint.join("manifest.json").is_file());
+    assert_eq!(out.status.code(), Some(130), "{err}");
+    assert!(
+        err.contains(&format!(
+            "stop requested: training is over and its checkpoint {} is written; the summary \
+             (learning curve, in-context check) is skipped. Evaluate it with:\n  cargo xtask \
+             eval --checkpoint {}",
+            s(&checkpoint),
+            s(&std::path::absolute(&checkpoint).unwrap())
+        )),
+        "{err}"
+    );
+    assert!(!err.contains("finishing the current update"), "{err}");
+    assert!(!rest.contains("in-context check"), "skipped: {rest}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
 /// The printed eval command works from any folder (trial 3, weak: with a
 /// relative `--out`, it named the checkpoint relative to where pretrain ran,
 /// not where `cargo xtask` runs, the workspace): pretrain here runs in `dir`

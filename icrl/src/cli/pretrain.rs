@@ -82,6 +82,15 @@ pub fn eppo(
         progress: true,
     };
     let report = eppo::train(&opts)?;
+    // Training is over and its checkpoint written: a signal now skips what
+    // follows (the learning curve, the in-context check) and says so,
+    // rather than promise an update and a checkpoint.
+    crate::stop::saved(format!(
+        "training is over and its checkpoint {} is written; the summary (learning curve, \
+         in-context check) is skipped. Evaluate it with:\n  {}",
+        report.last_checkpoint.display(),
+        crate::run_summary::eval_command(env_name, &report.last_checkpoint)
+    ));
     if let Err(e) = crate::plots::training::plot_learning_curve(&report.run_dir, 10) {
         eprintln!("warning: {e}");
     }
