@@ -73,7 +73,7 @@ impl fmt::Display for Range {
             } else if x == f64::NEG_INFINITY {
                 "-inf".to_string()
             } else {
-                format!("{x}")
+                short_number(x)
             }
         };
         write!(
@@ -87,13 +87,25 @@ impl fmt::Display for Range {
     }
 }
 
+/// A number as a message shows it: as Rust writes it where that is short,
+/// in exponent form far from 1 (`1e-300`, not 300 zeros: the hand rerun of
+/// trial 3 met a message of 300 digits).
+pub fn short_number(x: f64) -> String {
+    if x == 0.0 || !x.is_finite() || (1e-4..1e16).contains(&x.abs()) {
+        format!("{x}")
+    } else {
+        format!("{x:e}")
+    }
+}
+
 /// Checks `(name, value, range)` in order; the error names the first value
 /// outside its range and the range.
 pub fn check_numbers(items: &[(&str, f64, Range)]) -> Result<(), String> {
     for &(name, value, range) in items {
         if !range.contains(value) {
             return Err(format!(
-                "{name} = {value}: must be a finite number in {range}"
+                "{name} = {}: must be a finite number in {range}",
+                short_number(value)
             ));
         }
     }
@@ -297,6 +309,19 @@ mod tests {
         assert!(e.contains("lr = -1") && e.contains("(0, inf)"), "{e}");
         let e = check_counts(&[("batch_size", 4), ("updates_per_round", 0)]).unwrap_err();
         assert_eq!(e, "updates_per_round = 0: must be at least 1");
+        // Far from 1, in exponent form (300 digits before the hand rerun).
+        let scale = Range::new(0.0, true, 1e6, false);
+        let e = check_numbers(&[("reward_scale", 1e300, scale)]).unwrap_err();
+        assert_eq!(
+            e,
+            "reward_scale = 1e300: must be a finite number in (0, 1000000]"
+        );
+        let tiny = Range::new(f64::from(f32::MIN_POSITIVE), false, 1.0, false);
+        let e = check_numbers(&[("adam_eps", 1e-300, tiny)]).unwrap_err();
+        assert_eq!(
+            e,
+            "adam_eps = 1e-300: must be a finite number in [1.1754943508222875e-38, 1]"
+        );
     }
 
     #[test]

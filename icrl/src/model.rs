@@ -35,6 +35,13 @@ pub enum ModelError {
     CacheBatch { cached: i64, got: i64 },
 }
 
+/// The deepest transformer a config may ask for: 8 times the deepest preset
+/// (trial 3's edge fuzz: 100000 layers of width 16 passed the memory
+/// estimate, then held 16.8 GB, twice the estimate in per-tensor overhead,
+/// and had not finished its first update when SIGTERM came at 60 s; 500
+/// layers took 66 s for two updates).
+pub const MOST_LAYERS: i64 = 64;
+
 /// How positions are encoded.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -85,6 +92,14 @@ impl Config {
                     "{name} = {value} must be positive"
                 )));
             }
+        }
+        if self.n_layers > MOST_LAYERS {
+            return Err(ModelError::Config(format!(
+                "n_layers = {}: at most {MOST_LAYERS} (every agent step runs each layer's \
+                 kernels one after another: far deeper, a run takes minutes per update and \
+                 stops late when asked)",
+                self.n_layers
+            )));
         }
         if self.d_model % self.n_heads != 0 {
             return Err(ModelError::Config(format!(

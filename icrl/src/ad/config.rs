@@ -313,7 +313,7 @@ pub fn memory_estimate(
     let params = k * d + d + d * d + d + transformer_parameters(&cfg.model) + d * a + a;
     let (b, t) = (cfg.batch_size as f64, cfg.model.max_len as f64);
     let mut m = crate::guard::MemoryEstimate {
-        levers: "batch_size, model.max_len, model.d_model or model.n_layers".into(),
+        levers: "batch_size, model.max_len, model.d_model, model.n_layers or model.d_ff".into(),
         ..Default::default()
     };
     m.add("tokenised dataset", 4.0 * steps as f64 * (k + a + 2.0));

@@ -315,9 +315,9 @@ pub fn memory_estimate(cfg: &EppoConfig, spec: &NetSpec) -> crate::guard::Memory
     );
     let step_bytes = 4.0 * (f(spec.obs_dim) + a + 3.0) + 15.0;
     let mut m = crate::guard::MemoryEstimate {
-        levers:
-            "batch_size, model.max_len, model.d_model, model.n_layers, n_envs or replay_capacity"
-                .into(),
+        levers: "batch_size, model.max_len, model.d_model, model.n_layers, model.d_ff, \
+                 encoder_hidden, head_hidden, n_critics, n_envs or replay_capacity"
+            .into(),
         ..Default::default()
     };
     m.add("replay", f(cfg.targets.replay_capacity) * step_bytes);

@@ -19,9 +19,10 @@ impl SlurmOptions {
             && !(rate.is_finite() && rate >= MIN_UPDATES_PER_SECOND)
         {
             return Err(format!(
-                "slurm.updates_per_second = {rate}: must be at least {MIN_UPDATES_PER_SECOND} \
+                "slurm.updates_per_second = {}: must be at least {MIN_UPDATES_PER_SECOND:.3e} \
                  (one update a day; measure it with a short run on the cluster), or set \
-                 slurm.time instead"
+                 slurm.time instead",
+                crate::guard::short_number(rate)
             ));
         }
         if self.cpus_per_task == Some(0) {

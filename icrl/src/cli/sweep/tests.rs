@@ -259,6 +259,11 @@ fn slurm_settings_out_of_bounds_are_refused_and_mem_is_honoured() {
             "updates_per_second",
         );
     }
+    // A number far from 1 in exponent form, not 300 zeros (the hand rerun).
+    refused(
+        "seeds = [0]\n[slurm]\nupdates_per_second = 1e-300\n",
+        "updates_per_second = 1e-300: must be at least 1.157e-5 (one update a day",
+    );
     refused("seeds = [0]\n[slurm]\ncpus_per_task = 0\n", "cpus_per_task");
     refused("seeds = [0]\n[slurm]\ntime = \"garbage\"\n", "slurm.time");
     refused("seeds = [0]\n[slurm]\nmem = \"lots\"\n", "slurm.mem");

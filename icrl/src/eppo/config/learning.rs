@@ -54,7 +54,14 @@ impl OptimisationConfig {
             ("lr", self.lr, Range::UNIT_OPEN_LOW),
             ("beta1", self.beta1, Range::UNIT_OPEN_HIGH),
             ("beta2", self.beta2, Range::UNIT_OPEN_HIGH),
-            ("adam_eps", self.adam_eps, Range::UNIT_OPEN_LOW),
+            // Added to float32 moments: below float32's smallest normal
+            // number it rounds to 0, and 0 / 0 is NaN (trial 3's edge fuzz:
+            // `adam_eps=1e-300` stopped on a NaN loss at update 2).
+            (
+                "adam_eps",
+                self.adam_eps,
+                Range::new(f32::MIN_POSITIVE as f64, false, 1.0, false),
+            ),
             ("grad_clip", self.grad_clip, Range::POSITIVE),
             ("critic_weight", self.critic_weight, Range::POSITIVE),
         ])

@@ -119,9 +119,21 @@ impl TasksConfig {
             ),
         ])
         .or_else(bad)?;
+        // Budgets are drawn between the two in float32: near its largest
+        // value their difference overflows (trial 3's edge fuzz:
+        // `ctg_max=3.4e38` panicked in the draw), and no episode costs
+        // anywhere near a million.
         check_numbers(&[
-            ("ctg_min", f64::from(self.ctg_min), Range::NON_NEGATIVE),
-            ("ctg_max", f64::from(self.ctg_max), Range::POSITIVE),
+            (
+                "ctg_min",
+                f64::from(self.ctg_min),
+                Range::new(0.0, false, MOST_CTG, false),
+            ),
+            (
+                "ctg_max",
+                f64::from(self.ctg_max),
+                Range::new(0.0, true, MOST_CTG, false),
+            ),
         ])
         .or_else(bad)?;
         if self.k_min == 0 || self.k_min > self.k_max {
@@ -223,6 +235,9 @@ impl<'de> Deserialize<'de> for ModelConfig {
         })
     }
 }
+
+/// The largest cost budget (CTG_min, CTG_max) a run samples.
+const MOST_CTG: f64 = 1e6;
 
 /// Absent from a config: the environment's default macro action.
 fn default_physics_steps_per_action() -> Option<usize> {

@@ -473,6 +473,68 @@ fn settings_that_would_hang_a_run_are_refused_with_their_bound() {
     }
 }
 
+/// What the settings' edge fuzz (`icrl/tests/fuzz_settings.rs`) found, each
+/// refused naming the setting and its bound: `ctg_max` near float32's
+/// largest (the budget draw panicked on the overflowing range), `adam_eps`
+/// below float32's smallest normal number (rounded to 0: a NaN loss at
+/// update 2), a 100000-layer transformer (16.8 GB and no first update in
+/// 60 s, past a memory estimate of 8 GB), and sizes the memory message did
+/// not name as what to lower (`model.d_ff`, `encoder_hidden`, `head_hidden`,
+/// `n_critics`); numbers far from 1 are shown as `1e-300`, not 300 digits.
+#[test]
+fn settings_at_the_edges_the_fuzz_found_are_refused_by_name() {
+    let refused = |change: &dyn Fn(&mut EppoConfig), want: &str| {
+        let mut c = tiny();
+        change(&mut c);
+        let err = c.validate().unwrap_err().to_string();
+        assert!(err.contains(want), "{want}: {err}");
+    };
+    refused(
+        &|c| c.tasks.ctg_max = f32::MAX,
+        "ctg_max = 3.4028234663852886e38: must be a finite number in (0, 1000000]",
+    );
+    refused(
+        &|c| c.tasks.ctg_min = 2e6,
+        "ctg_min = 2000000: must be a finite number in [0, 1000000]",
+    );
+    refused(
+        &|c| c.optimisation.adam_eps = 1e-300,
+        "adam_eps = 1e-300: must be a finite number in [1.1754943508222875e-38, 1]",
+    );
+    refused(
+        &|c| c.model.transformer.n_layers = 100_000,
+        "n_layers = 100000: at most 64",
+    );
+    let mut edge = tiny();
+    edge.tasks.ctg_max = 1e6;
+    edge.optimisation.adam_eps = f64::from(f32::MIN_POSITIVE);
+    edge.model.transformer.n_layers = crate::model::MOST_LAYERS;
+    edge.validate().unwrap();
+    let spec = NetSpec::from_spaces(
+        &safety_envs::Space::Box {
+            low: vec![0.0; 4],
+            high: vec![1.0; 4],
+        },
+        &safety_envs::Space::Discrete { n: 5 },
+    )
+    .unwrap();
+    type Change = fn(&mut EppoConfig);
+    let sizes: [(&str, Change); 4] = [
+        ("model.d_ff", |c| c.model.transformer.d_ff = i64::MAX),
+        ("encoder_hidden", |c| c.model.encoder_hidden = i64::MAX),
+        ("head_hidden", |c| c.model.head_hidden = 100_000_000),
+        ("n_critics", |c| c.model.n_critics = 1_000_000_000),
+    ];
+    for (name, change) in sizes {
+        let mut c = tiny();
+        change(&mut c);
+        let err = crate::eppo::memory_estimate(&c, &spec)
+            .check_against(Some((1 << 34, 1 << 35)))
+            .unwrap_err();
+        assert!(err.contains(name), "{name}: {err}");
+    }
+}
+
 /// A committed checkpoint trained with a retired setting is refused by its
 /// name and the last commit that had it (Point's rn1, whose spec holds the
 /// statistics `standardise_observations` took), while one trained without
