@@ -123,6 +123,30 @@ pub fn check_torch_threads(n: i32) -> Result<(), String> {
     }
 }
 
+/// Sets libtorch's intra-op threads for this OS thread from a thread-count
+/// setting (`torch_threads`, `learner_threads`): 0 keeps libtorch's default,
+/// and a count above this machine's cores is held to the cores, with a
+/// warning once, since threads past the cores only wait on each other (1024
+/// on 2 busy cores stalled a 2-update run for minutes). Presets ask for 1
+/// or 2, so they run as written.
+pub fn set_torch_threads(name: &str, setting: i32) {
+    if setting <= 0 {
+        return;
+    }
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let threads = setting.min(i32::try_from(cores).unwrap_or(i32::MAX));
+    if threads < setting {
+        static WARNED: std::sync::Once = std::sync::Once::new();
+        WARNED.call_once(|| {
+            eprintln!(
+                "warning: {name} = {setting} is more than this machine's {cores} cores: libtorch \
+                 uses {threads}"
+            );
+        });
+    }
+    tch::set_num_threads(threads);
+}
+
 /// Checks that every count is at least 1; the error names the first that is not.
 pub fn check_counts(items: &[(&str, i128)]) -> Result<(), String> {
     for &(name, value) in items {
@@ -291,6 +315,23 @@ pub fn transformer_activation_bytes(cfg: &crate::model::Config, batch: f64) -> f
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// More threads than cores run as many as the cores; a count within
+    /// them, as asked; 0 leaves libtorch's count alone.
+    #[test]
+    fn thread_settings_are_held_to_the_cores() {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get()) as i32;
+        std::thread::spawn(move || {
+            set_torch_threads("torch_threads", 1024.max(cores + 1));
+            assert_eq!(tch::get_num_threads(), cores);
+            set_torch_threads("torch_threads", 1);
+            assert_eq!(tch::get_num_threads(), 1);
+            set_torch_threads("torch_threads", 0);
+            assert_eq!(tch::get_num_threads(), 1);
+        })
+        .join()
+        .unwrap();
+    }
 
     #[test]
     fn ranges_refuse_nan_infinity_and_values_outside_naming_the_range() {

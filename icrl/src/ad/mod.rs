@@ -265,9 +265,7 @@ fn open_run(req: &TrainRequest<'_>) -> Result<(RunDir, AdSpec), AdError> {
     cfg.validate()?;
     req.data.validate(req.dataset_path)?;
     let dir = req.run_dir;
-    if cfg.torch_threads > 0 {
-        tch::set_num_threads(cfg.torch_threads);
-    }
+    crate::guard::set_torch_threads("torch_threads", cfg.torch_threads);
     let spec = spec_for(req.data, req.dataset_path);
     memory_estimate(cfg, &spec, req.data.total_steps())
         .check()

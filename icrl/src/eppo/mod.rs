@@ -201,9 +201,7 @@ impl Learner {
     pub fn new(cfg: EppoConfig, env: EnvName) -> Result<Self, EppoError> {
         cfg.validate()?;
         let device = parse_device(&cfg.run.device)?;
-        if cfg.run.torch_threads > 0 {
-            tch::set_num_threads(cfg.run.torch_threads);
-        }
+        crate::guard::set_torch_threads("torch_threads", cfg.run.torch_threads);
         let probe = make_training_env(env, &cfg)?;
         let spec = NetSpec::from_spaces(&probe.observation_space(), &probe.action_space())?;
         if cfg.goal.scripted_first_episode && probe.goal_seeking_action().is_none() {

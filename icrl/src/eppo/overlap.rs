@@ -113,15 +113,11 @@ pub(super) fn train(
         learner.cfg.run.torch_threads,
         learner.cfg.run.learner_threads,
     );
-    if learner_threads > 0 {
-        tch::set_num_threads(learner_threads);
-    }
+    crate::guard::set_torch_threads("learner_threads", learner_threads);
     let result = std::thread::scope(|s| {
         let actor_thread = s.spawn(|| {
-            if actor.cfg.run.torch_threads > 0 {
-                // libtorch's intra-op thread count is per OS thread.
-                tch::set_num_threads(actor.cfg.run.torch_threads);
-            }
+            // libtorch's intra-op thread count is per OS thread.
+            crate::guard::set_torch_threads("torch_threads", actor.cfg.run.torch_threads);
             actor.run(venv, env, &spec, weights_rx, rounds_tx, &quit)
         });
         let learned = learner_side(learner, session, &learner_vars, rounds_rx, weights_tx);
@@ -132,8 +128,8 @@ pub(super) fn train(
             .unwrap_or_else(|_| Err(EppoError::Config("the actor thread panicked".into())));
         learned.and(acted)
     });
-    if learner_threads > 0 && torch_threads > 0 {
-        tch::set_num_threads(torch_threads);
+    if learner_threads > 0 {
+        crate::guard::set_torch_threads("torch_threads", torch_threads);
     }
     result
 }
