@@ -29,16 +29,21 @@ fn grid_file(dir: &Path, seeds: &str, updates: u64) -> PathBuf {
     path
 }
 
-/// `icrl sweep ARGS --grid GRID`, which must succeed; its stdout.
-fn sweep(grid: &Path, args: &[&str]) -> String {
-    let out = Command::new(env!("CARGO_BIN_EXE_icrl"))
+/// `icrl sweep ARGS --grid GRID`, whatever it ends in.
+fn run_sweep(grid: &Path, args: &[&str]) -> std::process::Output {
+    Command::new(env!("CARGO_BIN_EXE_icrl"))
         .arg("sweep")
         .args(args)
         .arg("--grid")
         .arg(grid)
         .stdin(Stdio::null())
         .output()
-        .unwrap();
+        .unwrap()
+}
+
+/// `icrl sweep ARGS --grid GRID`, which must succeed; its stdout.
+fn sweep(grid: &Path, args: &[&str]) -> String {
+    let out = run_sweep(grid, args);
     let stdout = String::from_utf8_lossy(&out.stdout).into_owned();
     assert!(
         out.status.success(),
@@ -118,14 +123,7 @@ fn a_grid_runs_here_task_after_task_and_a_second_run_skips_the_finished() {
 
 /// `icrl sweep ARGS --grid GRID`, which must fail with exit 1; its stderr.
 fn sweep_refused(grid: &Path, args: &[&str]) -> String {
-    let out = Command::new(env!("CARGO_BIN_EXE_icrl"))
-        .arg("sweep")
-        .args(args)
-        .arg("--grid")
-        .arg(grid)
-        .stdin(Stdio::null())
-        .output()
-        .unwrap();
+    let out = run_sweep(grid, args);
     let stderr = String::from_utf8_lossy(&out.stderr).into_owned();
     assert_eq!(out.status.code(), Some(1), "{stderr}");
     stderr
