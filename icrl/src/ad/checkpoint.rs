@@ -10,7 +10,7 @@ use tch::nn;
 
 use super::config::{AdConfig, AdSpec};
 use super::{AdError, io_err};
-use crate::checkpoint::{CheckpointError, RunDir, read_manifest};
+use crate::checkpoint::{CheckpointError, RunDir, read_manifest, write_part};
 use crate::optim::Adam;
 
 #[derive(Debug, Serialize, Deserialize)]
@@ -55,19 +55,13 @@ pub(super) fn save_checkpoint(
         model_manifest(cfg, spec),
         cfg.retention(),
         |dir| {
-            let wrap = |path: PathBuf, e: String| CheckpointError::Invalid {
-                path,
-                problem: e,
-                fix: "check the disk".into(),
-            };
-            let p = dir.join("model.safetensors");
-            vs.save(&p).map_err(|e| wrap(p.clone(), e.to_string()))?;
-            let p = dir.join("adam.safetensors");
-            opt.save(&p).map_err(|e| wrap(p.clone(), e.to_string()))?;
-            let p = dir.join("state.json");
-            let json =
-                serde_json::to_vec_pretty(state).map_err(|e| wrap(p.clone(), e.to_string()))?;
-            fs::write(&p, json).map_err(|e| wrap(p.clone(), e.to_string()))
+            let text = |e: tch::TchError| e.to_string();
+            write_part(dir, "model.safetensors", |p| vs.save(p).map_err(text))?;
+            write_part(dir, "adam.safetensors", |p| opt.save(p).map_err(text))?;
+            write_part(dir, "state.json", |p| {
+                let json = serde_json::to_vec_pretty(state).map_err(|e| e.to_string())?;
+                fs::write(p, json).map_err(|e| e.to_string())
+            })
         },
     )?;
     Ok(dir)

@@ -40,7 +40,7 @@ mod writing;
 pub use manifest::{Manifest, drop_file, read_manifest, record_forked_max_len, sha256_file};
 pub use metrics::{MetricsWriter, recorded_counters, truncate_metrics};
 pub use run_dir::{ForkFrom, Forked, RunDir, checkpoint_folders};
-pub use writing::{Retention, last_good};
+pub use writing::{Retention, last_good, write_part};
 
 /// Version of the checkpoint layout; bumped when files or their meaning change.
 pub const FORMAT_VERSION: u32 = 1;

@@ -26,6 +26,22 @@ impl Retention {
     }
 }
 
+/// Writes one file `name` of a checkpoint being filled in `dir` (the
+/// temporary folder [`RunDir::write_checkpoint`] hands its `write`), naming
+/// the file in the error: what every learner's checkpoint is made of.
+pub fn write_part(
+    dir: &Path,
+    name: &str,
+    write: impl FnOnce(&Path) -> Result<(), String>,
+) -> Result<(), CheckpointError> {
+    let path = dir.join(name);
+    write(&path).map_err(|problem| CheckpointError::Invalid {
+        path,
+        problem,
+        fix: "check the disk".into(),
+    })
+}
+
 impl RunDir {
     /// Makes and removes the deepest path a checkpoint at update `last` will
     /// write, so that a path the file system refuses (too long, a read-only

@@ -16,7 +16,7 @@ use super::config::{EppoConfig, EppoError};
 use super::multiplier::{ConstraintStart, Multiplier};
 use super::net::NetSpec;
 use super::replay::Replay;
-use crate::checkpoint::{CheckpointError, RunDir, read_manifest};
+use crate::checkpoint::{CheckpointError, RunDir, read_manifest, write_part};
 use crate::task_seeds::PretrainTasks;
 
 impl Learner {
@@ -58,31 +58,22 @@ impl Learner {
             self.model_manifest(),
             self.cfg.run.retention(),
             |dir| {
-                let wrap = |path: PathBuf, e: String| CheckpointError::Invalid {
-                    path,
-                    problem: e,
-                    fix: "check the disk".into(),
-                };
-                let p = dir.join("model.safetensors");
-                self.vs
-                    .save(&p)
-                    .map_err(|e| wrap(p.clone(), e.to_string()))?;
-                let p = dir.join("target.safetensors");
-                self.target_vs
-                    .save(&p)
-                    .map_err(|e| wrap(p.clone(), e.to_string()))?;
-                let p = dir.join(REPLAY_FILE);
-                self.replay.save(&p).map_err(|e| wrap(p.clone(), e))?;
-                let p = dir.join("optimizer.safetensors");
-                self.opt
-                    .save(&p)
-                    .map_err(|e| wrap(p.clone(), e.to_string()))?;
-                let p = dir.join("state.json");
-                let text = serde_json::to_string_pretty(&state)
-                    .map_err(|e| wrap(p.clone(), e.to_string()))?;
-                std::fs::write(&p, text).map_err(|e| wrap(p.clone(), e.to_string()))?;
-                let p = dir.join("config.toml");
-                std::fs::write(&p, &config).map_err(|e| wrap(p.clone(), e.to_string()))
+                let text = |e: tch::TchError| e.to_string();
+                write_part(dir, "model.safetensors", |p| self.vs.save(p).map_err(text))?;
+                write_part(dir, "target.safetensors", |p| {
+                    self.target_vs.save(p).map_err(text)
+                })?;
+                write_part(dir, REPLAY_FILE, |p| self.replay.save(p))?;
+                write_part(dir, "optimizer.safetensors", |p| {
+                    self.opt.save(p).map_err(text)
+                })?;
+                write_part(dir, "state.json", |p| {
+                    let json = serde_json::to_string_pretty(&state).map_err(|e| e.to_string())?;
+                    std::fs::write(p, json).map_err(|e| e.to_string())
+                })?;
+                write_part(dir, "config.toml", |p| {
+                    std::fs::write(p, &config).map_err(|e| e.to_string())
+                })
             },
         )?;
         Ok(dir)
