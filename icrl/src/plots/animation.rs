@@ -22,12 +22,9 @@ pub fn darkroom_animation(
     step_frames: &dyn Fn(usize) -> bool,
     path: &Path,
 ) -> Result<usize, PlotError> {
-    let mut frames = 0;
-    output::write_file::<PlotError>(path, Existing::Replace, |tmp| {
-        frames = darkroom_animation_to(recording, task, budget, step_frames, tmp)?;
-        Ok(())
-    })?;
-    Ok(frames)
+    write_gif(path, |tmp| {
+        darkroom_animation_to(recording, task, budget, step_frames, tmp)
+    })
 }
 
 /// [`darkroom_animation`] into `path` directly (the temporary file).
@@ -64,7 +61,11 @@ fn darkroom_animation_to(
         .into_drawing_area();
     let mut touched = vec![false; (g * g) as usize];
     let mut frames = 0;
-    let k_n = recording.episodes.len();
+    let caption = Caption {
+        task,
+        episodes: recording.episodes.len(),
+        budget,
+    };
     for (k, ep) in recording.episodes.iter().enumerate() {
         let (mut ret, mut cost) = (0.0f32, 0.0f32);
         let last = ep.observations.len() - 1;
@@ -81,7 +82,7 @@ fn darkroom_animation_to(
             {
                 touched[(r * g + c) as usize] = true;
             }
-            if t < last && !step_frames(k) {
+            if !frame_wanted(step_frames(k), 1, t, last) {
                 continue;
             }
             root.fill(&WHITE).map_err(|e| err(e.to_string()))?;
@@ -134,15 +135,8 @@ fn darkroom_animation_to(
                 RGBColor(31, 119, 180).filled(),
             ))
             .map_err(|e| err(e.to_string()))?;
-            let line1 = format!(
-                "task seed ...{:06}  episode {}/{k_n}  step {t}",
-                task.seed % 1_000_000,
-                k + 1
-            );
-            let line2 = format!("return {ret:.0}  cost {cost:.0}  budget {budget:.1}");
-            root.draw(&Text::new(line1, (6, 6), ("sans-serif", 16)))
-                .map_err(|e| err(e.to_string()))?;
-            root.draw(&Text::new(line2, (6, 28), ("sans-serif", 16)))
+            caption
+                .draw(&root, k, t, ret, cost)
                 .map_err(|e| err(e.to_string()))?;
             root.present().map_err(|e| err(e.to_string()))?;
             frames += 1;
@@ -188,12 +182,9 @@ pub fn nav_animation(
     stride: usize,
     path: &Path,
 ) -> Result<usize, PlotError> {
-    let mut frames = 0;
-    output::write_file::<PlotError>(path, Existing::Replace, |tmp| {
-        frames = nav_animation_to(recording, task, arena, budget, step_frames, stride, tmp)?;
-        Ok(())
-    })?;
-    Ok(frames)
+    write_gif(path, |tmp| {
+        nav_animation_to(recording, task, arena, budget, step_frames, stride, tmp)
+    })
 }
 
 /// [`nav_animation`] into `path` directly (the temporary file).
@@ -238,7 +229,11 @@ fn nav_animation_to(
     let goal = arena.cell_xy(task.goal);
     let mut entered = vec![false; hazards.len()];
     let stride = stride.max(1);
-    let k_n = recording.episodes.len();
+    let caption = Caption {
+        task,
+        episodes: recording.episodes.len(),
+        budget,
+    };
     let mut frames = 0;
     for (k, ep) in recording.episodes.iter().enumerate() {
         let (mut ret, mut cost) = (0.0f32, 0.0f32);
@@ -254,12 +249,7 @@ fn nav_animation_to(
                     *e = true;
                 }
             }
-            let wanted = if step_frames(k) {
-                t % stride == 0 || t == last
-            } else {
-                t == last
-            };
-            if !wanted {
+            if !frame_wanted(step_frames(k), stride, t, last) {
                 continue;
             }
             let d = |r: Result<(), DrawingAreaErrorKind<_>>| r.map_err(|e| err(e.to_string()));
@@ -291,14 +281,7 @@ fn nav_animation_to(
                 RGBColor(31, 119, 180).stroke_width(2),
             )))?;
             d(root.draw(&Circle::new(px(pos), 6, RGBColor(31, 119, 180).filled())))?;
-            let line1 = format!(
-                "task seed ...{:06}  episode {}/{k_n}  step {t}",
-                task.seed % 1_000_000,
-                k + 1
-            );
-            let line2 = format!("return {ret:.0}  cost {cost:.0}  budget {budget:.1}");
-            d(root.draw(&Text::new(line1, (6, 6), ("sans-serif", 16))))?;
-            d(root.draw(&Text::new(line2, (6, 28), ("sans-serif", 16))))?;
+            d(caption.draw(&root, k, t, ret, cost))?;
             d(root.present())?;
             frames += 1;
         }
@@ -321,12 +304,9 @@ pub fn nav_render_animation(
     stride: usize,
     path: &Path,
 ) -> Result<usize, PlotError> {
-    let mut frames = 0;
-    output::write_file::<PlotError>(path, Existing::Replace, |tmp| {
-        frames = nav_render_animation_to(env, recording, task, budget, step_frames, stride, tmp)?;
-        Ok(())
-    })?;
-    Ok(frames)
+    write_gif(path, |tmp| {
+        nav_render_animation_to(env, recording, task, budget, step_frames, stride, tmp)
+    })
 }
 
 /// [`nav_render_animation`] into `path` directly (the temporary file).
@@ -357,7 +337,11 @@ fn nav_render_animation_to(
     let obs_dim = env.observation_space().flat_dim();
     let mut obs = vec![0.0f32; obs_dim];
     let stride = stride.max(1);
-    let k_n = recording.episodes.len();
+    let caption = Caption {
+        task,
+        episodes: recording.episodes.len(),
+        budget,
+    };
     let mut frames = 0;
     for (k, ep) in recording.episodes.iter().enumerate() {
         env.reset(ep.reset_seed, &mut obs)
@@ -375,12 +359,7 @@ fn nav_render_animation_to(
                     k + 1
                 )));
             }
-            let wanted = if step_frames(k) {
-                t % stride == 0 || t == last
-            } else {
-                t == last
-            };
-            if wanted {
+            if frame_wanted(step_frames(k), stride, t, last) {
                 let img = env
                     .render(&mut renderer, &camera)
                     .map_err(|e| err(e.to_string()))?;
@@ -393,14 +372,7 @@ fn nav_render_animation_to(
                 )
                 .ok_or_else(|| err("rendered image smaller than its size".into()))?;
                 d(root.draw(&bitmap))?;
-                let line1 = format!(
-                    "task seed ...{:06}  episode {}/{k_n}  step {t}",
-                    task.seed % 1_000_000,
-                    k + 1
-                );
-                let line2 = format!("return {ret:.0}  cost {cost:.0}  budget {budget:.1}");
-                d(root.draw(&Text::new(line1, (6, 6), ("sans-serif", 16))))?;
-                d(root.draw(&Text::new(line2, (6, 28), ("sans-serif", 16))))?;
+                d(caption.draw(&root, k, t, ret, cost))?;
                 d(root.present())?;
                 frames += 1;
             }
@@ -414,4 +386,53 @@ fn nav_render_animation_to(
         }
     }
     Ok(frames)
+}
+
+/// Writes a GIF atomically: `draw` fills the temporary file and returns
+/// the number of frames.
+fn write_gif(
+    path: &Path,
+    draw: impl FnOnce(&Path) -> Result<usize, PlotError>,
+) -> Result<usize, PlotError> {
+    let mut frames = 0;
+    output::write_file::<PlotError>(path, Existing::Replace, |tmp| {
+        frames = draw(tmp)?;
+        Ok(())
+    })?;
+    Ok(frames)
+}
+
+/// Whether step `t` of an episode whose last step is `last` gets a frame:
+/// every `stride`-th step of an episode shown step by step, else its last.
+fn frame_wanted(step_by_step: bool, stride: usize, t: usize, last: usize) -> bool {
+    t == last || (step_by_step && t.is_multiple_of(stride))
+}
+
+/// The two lines above every frame: the task, the episode and the step, and
+/// the episode's return and cost so far against the budget.
+struct Caption<'a> {
+    task: &'a TaskRecord,
+    episodes: usize,
+    budget: f32,
+}
+
+impl Caption<'_> {
+    fn draw<DB: DrawingBackend>(
+        &self,
+        root: &DrawingArea<DB, plotters::coord::Shift>,
+        k: usize,
+        t: usize,
+        ret: f32,
+        cost: f32,
+    ) -> Result<(), DrawingAreaErrorKind<DB::ErrorType>> {
+        let line1 = format!(
+            "task seed ...{:06}  episode {}/{}  step {t}",
+            self.task.seed % 1_000_000,
+            k + 1,
+            self.episodes
+        );
+        let line2 = format!("return {ret:.0}  cost {cost:.0}  budget {:.1}", self.budget);
+        root.draw(&Text::new(line1, (6, 6), ("sans-serif", 16)))?;
+        root.draw(&Text::new(line2, (6, 28), ("sans-serif", 16)))
+    }
 }
