@@ -6,20 +6,10 @@ use std::path::{Path, PathBuf};
 use std::process::{Command, Output};
 
 mod common;
-use common::tiny_eppo_args;
-
-fn icrl(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_icrl"))
-        .args(args)
-        .output()
-        .expect("run icrl")
-}
+use common::{fresh_dir, icrl, tiny_eppo_args};
 
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("icrl-hostile-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    fresh_dir(&format!("hostile-{name}"))
 }
 
 /// Makes a FIFO at `path`.

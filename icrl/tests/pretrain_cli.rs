@@ -4,34 +4,21 @@
 
 use std::process::Command;
 
+mod common;
+use common::{TINY_EPPO_SETS, set_args};
+
 #[test]
 fn a_tiny_point_run_prints_its_trend_checkpoint_and_eval_command() {
     let out = std::env::temp_dir().join(format!("icrl-pretrain-cli-{}", std::process::id()));
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_icrl"));
     cmd.args(["pretrain", "--env", "point", "--preset", "quick", "--out"])
         .arg(&out);
-    for set in [
-        "max_episode_steps=6",
-        "physics_steps_per_action=10",
-        "k_min=2",
-        "k_max=2",
-        "n_envs=2",
-        "batch_size=2",
-        "replay_capacity=1000",
-        "encoder_hidden=16",
-        "head_hidden=16",
-        "model.d_model=16",
-        "model.n_heads=2",
-        "model.n_layers=1",
-        "model.d_ff=32",
-        "model.max_len=12",
-        "total_updates=2",
-        "updates_per_round=2",
-        "learning_starts=0",
-        "checkpoint_every=2",
-    ] {
-        cmd.args(["--set", set]);
-    }
+    // Point's macro action cut to 10 physics steps (the manifest records it).
+    cmd.args(set_args(
+        TINY_EPPO_SETS
+            .into_iter()
+            .chain(["physics_steps_per_action=10"]),
+    ));
     let run = cmd.output().expect("run icrl");
     let stdout = String::from_utf8_lossy(&run.stdout);
     let stderr = String::from_utf8_lossy(&run.stderr);

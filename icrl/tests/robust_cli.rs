@@ -7,18 +7,11 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Output, Stdio};
 use std::time::{Duration, Instant};
 
-fn icrl(args: &[&str]) -> Output {
-    Command::new(env!("CARGO_BIN_EXE_icrl"))
-        .args(args)
-        .output()
-        .expect("run icrl")
-}
+mod common;
+use common::{TINY_EPPO_SETS, fresh_dir, icrl, set_args};
 
 fn tmp(name: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("icrl-robust-{name}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    std::fs::create_dir_all(&d).unwrap();
-    d
+    fresh_dir(&format!("robust-{name}"))
 }
 
 /// Fails unless the command failed with `want` in stderr and no panic.
@@ -132,35 +125,16 @@ fn bad_settings_and_arguments_are_refused_clearly() {
 // The child goes back to the caller, which waits for it (`wait` below).
 #[allow(clippy::zombie_processes)]
 fn start_long_run(out: &Path) -> (Child, PathBuf) {
-    let sets = [
-        "max_episode_steps=6",
-        "k_min=2",
-        "k_max=2",
-        "n_envs=3",
-        "batch_size=3",
-        "replay_capacity=1000",
-        "encoder_hidden=16",
-        "head_hidden=16",
-        "model.d_model=16",
-        "model.n_heads=2",
-        "model.n_layers=1",
-        "model.d_ff=32",
-        "model.max_len=12",
-        "total_updates=1000000",
-        "updates_per_round=2",
-        "learning_starts=0",
-        "checkpoint_every=1000000",
-        "torch_threads=1",
-        "env_threads=1",
-    ];
+    // Tiny, but with more updates and checkpoints than it will ever reach.
+    let sets = TINY_EPPO_SETS
+        .into_iter()
+        .chain(["total_updates=1000000", "checkpoint_every=1000000"]);
     let mut cmd = Command::new(env!("CARGO_BIN_EXE_icrl"));
     // The `icrl` form of the resume line is checked: not started by xtask.
     cmd.env_remove("ICRL_VIA_XTASK")
         .args(["pretrain", "--env", "darkroom", "--out"])
         .arg(out);
-    for s in sets {
-        cmd.args(["--set", s]);
-    }
+    cmd.args(set_args(sets));
     let mut child = cmd
         .stdout(Stdio::piped())
         .stderr(Stdio::piped())
