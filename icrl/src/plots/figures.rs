@@ -44,22 +44,20 @@ pub fn figure1(envs: &[EnvCurves], stem: &Path) -> Result<Vec<PathBuf>, PlotErro
             // Episode 1 has no earlier episode: the rates start at k = 2.
             let later = &s.per_episode[1.min(s.per_episode.len())..];
             let x: Vec<f64> = later.iter().map(|p| p.k as f64).collect();
-            search.bands.push(Band {
-                label: format!("{label}: discovery"),
-                x: x.clone(),
-                mean: later.iter().map(|p| p.discovery.mean).collect(),
-                se: Vec::new(),
+            search.bands.push(Band::line(
+                format!("{label}: discovery"),
+                x.clone(),
+                later.iter().map(|p| p.discovery.mean).collect(),
                 colour,
                 thin,
-            });
-            search.bands.push(Band {
-                label: format!("{label}: revisit"),
+            ));
+            search.bands.push(Band::line(
+                format!("{label}: revisit"),
                 x,
-                mean: later.iter().map(|p| p.revisit.mean).collect(),
-                se: Vec::new(),
-                colour: lighter(colour),
+                later.iter().map(|p| p.revisit.mean).collect(),
+                lighter(colour),
                 thin,
-            });
+            ));
         }
         searches.push(search);
         let mut ret = Panel {
@@ -77,22 +75,20 @@ pub fn figure1(envs: &[EnvCurves], stem: &Path) -> Result<Vec<PathBuf>, PlotErro
         for (i, (label, s)) in e.methods.iter().enumerate() {
             let colour = METHOD_COLOURS[i % METHOD_COLOURS.len()];
             let x: Vec<f64> = s.per_episode.iter().map(|p| p.k as f64).collect();
-            ret.bands.push(Band {
-                label: label.clone(),
-                x: x.clone(),
-                mean: s.per_episode.iter().map(|p| p.ret.mean).collect(),
-                se: s.per_episode.iter().map(|p| p.ret.se).collect(),
+            ret.bands.push(Band::shaded(
+                label.clone(),
+                x.clone(),
+                s.per_episode.iter().map(|p| p.ret.mean).collect(),
+                s.per_episode.iter().map(|p| p.ret.se).collect(),
                 colour,
-                thin: false,
-            });
-            cost.bands.push(Band {
-                label: label.clone(),
+            ));
+            cost.bands.push(Band::shaded(
+                label.clone(),
                 x,
-                mean: s.per_episode.iter().map(|p| p.cost.mean).collect(),
-                se: s.per_episode.iter().map(|p| p.cost.se).collect(),
+                s.per_episode.iter().map(|p| p.cost.mean).collect(),
+                s.per_episode.iter().map(|p| p.cost.se).collect(),
                 colour,
-                thin: false,
-            });
+            ));
             cost.hlines.push(HLine {
                 label: format!("budget ({label}, mean {:.2})", s.mean_budget),
                 y: s.mean_budget as f64,
@@ -115,14 +111,13 @@ pub fn figure1(envs: &[EnvCurves], stem: &Path) -> Result<Vec<PathBuf>, PlotErro
                     r.per_episode.iter().map(|p| p.cost.mean).collect(),
                 ),
             ] {
-                panel.bands.push(Band {
-                    label: "random policy".into(),
-                    x: x.clone(),
-                    mean: ys,
-                    se: Vec::new(),
-                    colour: RANDOM_COLOUR,
-                    thin: true,
-                });
+                panel.bands.push(Band::line(
+                    "random policy",
+                    x.clone(),
+                    ys,
+                    RANDOM_COLOUR,
+                    true,
+                ));
             }
         }
         returns.push(ret);
@@ -158,22 +153,20 @@ pub fn figure2(envs: &[EnvCurves], stem: &Path) -> Result<Vec<PathBuf>, PlotErro
             let mut pts: Vec<_> = s.per_condition.iter().collect();
             pts.sort_by(|a, b| a.condition.ctg.total_cmp(&b.condition.ctg));
             let x: Vec<f64> = pts.iter().map(|p| p.condition.ctg as f64).collect();
-            ret.bands.push(Band {
-                label: label.clone(),
-                x: x.clone(),
-                mean: pts.iter().map(|p| p.total_return.mean).collect(),
-                se: pts.iter().map(|p| p.total_return.se).collect(),
+            ret.bands.push(Band::shaded(
+                label.clone(),
+                x.clone(),
+                pts.iter().map(|p| p.total_return.mean).collect(),
+                pts.iter().map(|p| p.total_return.se).collect(),
                 colour,
-                thin: false,
-            });
-            cost.bands.push(Band {
-                label: label.clone(),
+            ));
+            cost.bands.push(Band::shaded(
+                label.clone(),
                 x,
-                mean: pts.iter().map(|p| p.max_cost.mean).collect(),
-                se: pts.iter().map(|p| p.max_cost.se).collect(),
+                pts.iter().map(|p| p.max_cost.mean).collect(),
+                pts.iter().map(|p| p.max_cost.se).collect(),
                 colour,
-                thin: false,
-            });
+            ));
         }
         if let Some(r) = &e.random {
             let mut pts: Vec<_> = r.per_condition.iter().collect();
@@ -186,14 +179,13 @@ pub fn figure2(envs: &[EnvCurves], stem: &Path) -> Result<Vec<PathBuf>, PlotErro
                 ),
                 (&mut cost, pts.iter().map(|p| p.max_cost.mean).collect()),
             ] {
-                panel.bands.push(Band {
-                    label: "random policy".into(),
-                    x: x.clone(),
-                    mean: ys,
-                    se: Vec::new(),
-                    colour: RANDOM_COLOUR,
-                    thin: true,
-                });
+                panel.bands.push(Band::line(
+                    "random policy",
+                    x.clone(),
+                    ys,
+                    RANDOM_COLOUR,
+                    true,
+                ));
             }
         }
         returns.push(ret);

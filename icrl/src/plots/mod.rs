@@ -112,6 +112,44 @@ pub struct Band {
     pub thin: bool,
 }
 
+impl Band {
+    /// A method's curve: its mean with one standard error shaded.
+    pub fn shaded(
+        label: impl Into<String>,
+        x: Vec<f64>,
+        mean: Vec<f64>,
+        se: Vec<f64>,
+        colour: RGBColor,
+    ) -> Self {
+        Band {
+            label: label.into(),
+            x,
+            mean,
+            se,
+            colour,
+            thin: false,
+        }
+    }
+
+    /// A plain line, `thin` for a reference curve (the random policy).
+    pub fn line(
+        label: impl Into<String>,
+        x: Vec<f64>,
+        mean: Vec<f64>,
+        colour: RGBColor,
+        thin: bool,
+    ) -> Self {
+        Band {
+            label: label.into(),
+            x,
+            mean,
+            se: Vec::new(),
+            colour,
+            thin,
+        }
+    }
+}
+
 /// A horizontal reference line (a budget, a random policy's level).
 #[derive(Clone, Debug, PartialEq)]
 pub struct HLine {

@@ -157,14 +157,13 @@ pub fn plot_training(run_dir: &Path) -> Result<Vec<PathBuf>, AdError> {
             .zip(ys)
             .filter_map(|(&x, y)| y.map(|y| (x, y)))
             .collect();
-        Band {
-            label: label.into(),
-            x: pts.iter().map(|p| p.0).collect(),
-            mean: pts.iter().map(|p| p.1).collect(),
-            se: Vec::new(),
+        Band::line(
+            label,
+            pts.iter().map(|p| p.0).collect(),
+            pts.iter().map(|p| p.1).collect(),
             colour,
-            thin: false,
-        }
+            false,
+        )
     };
     let loss = Panel {
         title: "supervised loss (Eq. 16)".into(),
@@ -300,23 +299,11 @@ pub fn plot_histories(
         let colour = METHOD_COLOURS[i % METHOD_COLOURS.len()];
         let label = format!("cost limit {limit} ({} histories)", per_hist.len());
         let (m, se) = stat(&|p| p.0);
-        ret.bands.push(Band {
-            label: label.clone(),
-            x: x.clone(),
-            mean: m,
-            se,
-            colour,
-            thin: false,
-        });
+        ret.bands
+            .push(Band::shaded(label.clone(), x.clone(), m, se, colour));
         let (m, se) = stat(&|p| p.1);
-        cost.bands.push(Band {
-            label,
-            x: x.clone(),
-            mean: m,
-            se,
-            colour,
-            thin: false,
-        });
+        cost.bands
+            .push(Band::shaded(label, x.clone(), m, se, colour));
         cost.hlines.push(HLine {
             label: format!("limit {limit}"),
             y: limit as f64,
