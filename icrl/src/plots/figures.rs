@@ -111,13 +111,7 @@ pub fn figure1(envs: &[EnvCurves], stem: &Path) -> Result<Vec<PathBuf>, PlotErro
                     r.per_episode.iter().map(|p| p.cost.mean).collect(),
                 ),
             ] {
-                panel.bands.push(Band::line(
-                    "random policy",
-                    x.clone(),
-                    ys,
-                    RANDOM_COLOUR,
-                    true,
-                ));
+                panel.bands.push(Band::random_policy(x.clone(), ys));
             }
         }
         returns.push(ret);
@@ -179,13 +173,7 @@ pub fn figure2(envs: &[EnvCurves], stem: &Path) -> Result<Vec<PathBuf>, PlotErro
                 ),
                 (&mut cost, pts.iter().map(|p| p.max_cost.mean).collect()),
             ] {
-                panel.bands.push(Band::line(
-                    "random policy",
-                    x.clone(),
-                    ys,
-                    RANDOM_COLOUR,
-                    true,
-                ));
+                panel.bands.push(Band::random_policy(x.clone(), ys));
             }
         }
         returns.push(ret);

@@ -148,6 +148,11 @@ impl Band {
             thin,
         }
     }
+
+    /// The random policy's reference curve, beside a method's.
+    pub fn random_policy(x: Vec<f64>, mean: Vec<f64>) -> Self {
+        Band::line("random policy", x, mean, RANDOM_COLOUR, true)
+    }
 }
 
 /// A horizontal reference line (a budget, a random policy's level).
