@@ -53,8 +53,9 @@ pub struct RoundStats {
     /// and the fraction with |a| > 0.99; NaN for discrete actions.
     pub action_abs: f64,
     pub action_saturated: f64,
-    /// With goal slots (`goal_in_observation`), the round's two kinds of
-    /// trajectory apart; NaN without slots, or where a kind is absent.
+    /// With shown slots (`goal_in_observation` or `hazards_in_observation`),
+    /// the round's two kinds of trajectory apart; NaN without slots, or where
+    /// a kind is absent.
     pub goal_slots: GoalSlotStats,
 }
 
@@ -72,7 +73,8 @@ impl RoundStats {
     }
 }
 
-/// The round's trajectories that hid their goal against those that showed it.
+/// The round's trajectories that hid their slots (the goal, or the hazard
+/// map) against those that showed them.
 #[derive(Clone, Copy, Debug)]
 pub struct GoalSlotStats {
     /// The share of trajectories whose goal was hidden.
@@ -83,6 +85,11 @@ pub struct GoalSlotStats {
     pub hidden_revisit_rate: f64,
     /// Mean episode return of the shown ones: the control learned.
     pub shown_return: f64,
+    /// Mean episode cost of each kind: with the hazard map, a cost the shown
+    /// ones still pay is a lack of control, one only the hidden ones pay a
+    /// lack of memory.
+    pub hidden_cost: f64,
+    pub shown_cost: f64,
 }
 
 impl Default for GoalSlotStats {
@@ -92,6 +99,8 @@ impl Default for GoalSlotStats {
             hidden_return: f64::NAN,
             hidden_revisit_rate: f64::NAN,
             shown_return: f64::NAN,
+            hidden_cost: f64::NAN,
+            shown_cost: f64::NAN,
         }
     }
 }
@@ -102,6 +111,9 @@ impl GoalSlotStats {
         let returns = |h: bool| {
             mean(kind(h).flat_map(|(t, _)| t.episode_returns.iter().map(|&x| f64::from(x))))
         };
+        let costs = |h: bool| {
+            mean(kind(h).flat_map(|(t, _)| t.episode_costs.iter().map(|&x| f64::from(x))))
+        };
         GoalSlotStats {
             hidden_share: mean(hidden.iter().map(|&h| if h { 1.0 } else { 0.0 })),
             hidden_return: returns(true),
@@ -110,6 +122,8 @@ impl GoalSlotStats {
             )
             .1,
             shown_return: returns(false),
+            hidden_cost: costs(true),
+            shown_cost: costs(false),
         }
     }
 }
@@ -365,7 +379,7 @@ impl Collector<'_> {
             crate::signals::repeat_radius(self.env),
         );
         let mut stats = round_stats(&round.trajs, round.steps, self.spec, radii);
-        if self.cfg.goal.goal_in_observation {
+        if self.cfg.goal.goal_in_observation || self.cfg.goal.hazards_in_observation {
             stats.goal_slots = GoalSlotStats::of(&round.trajs, &round.hidden);
         }
         Ok((round.trajs, stats))

@@ -100,7 +100,8 @@
 //! where the trajectory paid one in an earlier episode), `last_over_budget`
 //! (the share of trajectories whose last episode ended over its budget),
 //! with goal slots `goal_hidden_share`, `hidden_goal_return`,
-//! `hidden_goal_revisit_rate` and `shown_goal_return` (the two kinds of
+//! `hidden_goal_revisit_rate` and `shown_goal_return`, and with goal or
+//! hazard slots `hidden_slots_cost` and `shown_slots_cost` (the two kinds of
 //! trajectory apart),
 //! `lambda`, `constrained`
 //! (whether the constraint acted in the round), `over_budget_price` (the
@@ -824,6 +825,8 @@ fn round_record(
         "hidden_goal_return": round.goal_slots.hidden_return,
         "hidden_goal_revisit_rate": round.goal_slots.hidden_revisit_rate,
         "shown_goal_return": round.goal_slots.shown_return,
+        "hidden_slots_cost": round.goal_slots.hidden_cost,
+        "shown_slots_cost": round.goal_slots.shown_cost,
         "lambda": learner.multiplier.lambda,
         "constrained": learner.constrained(),
         "over_budget_price": learner.over_budget_price(),

@@ -702,7 +702,28 @@ fn hidden_hazard_maps_are_blank_throughout_and_such_a_policy_is_evaluated() {
     assert_eq!(learner.spec.obs_dim, od, "position, map, flag");
     let mut venv = training_venv(EnvName::DarkRoom, &cfg);
     learner.collect(&mut venv).unwrap();
-    learner.collect(&mut venv).unwrap();
+    let stats = learner.collect(&mut venv).unwrap();
+    // The metrics' cost of each kind: the mean episode cost of the round's
+    // trajectories that showed (flag 1) or blanked their map.
+    let round: Vec<_> = learner.replay.trajectories.iter().rev().take(8).collect();
+    let cost_of = |flag: f32| {
+        let kind: Vec<f32> = round
+            .iter()
+            .filter(|t| t.obs[od - 1] == flag)
+            .flat_map(|t| t.episode_costs.iter().copied())
+            .collect();
+        kind.iter().map(|&c| f64::from(c)).sum::<f64>() / kind.len() as f64
+    };
+    for (metric, flag) in [
+        (stats.goal_slots.shown_cost, 1.0),
+        (stats.goal_slots.hidden_cost, 0.0),
+    ] {
+        let want = cost_of(flag);
+        assert!(
+            (metric - want).abs() < 1e-9 || (metric.is_nan() && want.is_nan()),
+            "{metric} against {want}"
+        );
+    }
     let (mut shown, mut hidden) = (0, 0);
     for t in &learner.replay.trajectories {
         let rows: Vec<&[f32]> = t.obs.chunks(od).chain(t.next_obs.chunks(od)).collect();
