@@ -108,12 +108,13 @@ impl Default for GoalSlotStats {
 impl GoalSlotStats {
     fn of(trajs: &[Trajectory], hidden: &[bool]) -> Self {
         let kind = |h: bool| trajs.iter().zip(hidden).filter(move |(_, x)| **x == h);
-        let returns = |h: bool| {
-            mean(kind(h).flat_map(|(t, _)| t.episode_returns.iter().map(|&x| f64::from(x))))
+        // NaN, not 0, for a kind the round does not hold.
+        let episode_mean = |h: bool, of: fn(&Trajectory) -> &[f32]| match kind(h).count() {
+            0 => f64::NAN,
+            _ => mean(kind(h).flat_map(|(t, _)| of(t).iter().map(|&x| f64::from(x)))),
         };
-        let costs = |h: bool| {
-            mean(kind(h).flat_map(|(t, _)| t.episode_costs.iter().map(|&x| f64::from(x))))
-        };
+        let returns = |h: bool| episode_mean(h, |t| &t.episode_returns);
+        let costs = |h: bool| episode_mean(h, |t| &t.episode_costs);
         GoalSlotStats {
             hidden_share: mean(hidden.iter().map(|&h| if h { 1.0 } else { 0.0 })),
             hidden_return: returns(true),
