@@ -380,7 +380,7 @@ impl Collector<'_> {
             crate::signals::repeat_radius(self.env),
         );
         let mut stats = round_stats(&round.trajs, round.steps, self.spec, radii);
-        if self.cfg.goal.goal_in_observation || self.cfg.goal.hazards_in_observation {
+        if round.slots > 0 {
             stats.goal_slots = GoalSlotStats::of(&round.trajs, &round.hidden);
         }
         Ok((round.trajs, stats))
