@@ -31,22 +31,29 @@ def same(x, y):
     return x == y
 
 
+def windows(rs):
+    """Each record by the window of updates it closes: (previous update
+    count, its own); records logged before the first update are left out."""
+    return {(p.get("updates"), r.get("updates")): r for p, r in zip([{}] + rs, rs) if r.get("updates")}
+
+
 def main(a_path, b_path):
-    a, b = records(a_path), records(b_path)
-    windows = lambda rs: {(p.get("updates"), r.get("updates")): r for p, r in zip([{}] + rs, rs)}
-    wa, wb = windows(a), windows(b)
-    shared = sorted((k for k in wa.keys() & wb.keys() if k[1]), key=lambda k: k[1])
+    wa, wb = windows(records(a_path)), windows(records(b_path))
+    shared = sorted(wa.keys() & wb.keys(), key=lambda k: k[1])
     n = len(shared)
+    if n == 0:
+        print("no window of updates is logged by both runs: nothing to compare")
+        return 1
     for i, key in enumerate(shared):
         fa, fb = learning_fields(wa[key]), learning_fields(wb[key])
         differ = sorted(k for k in fa.keys() | fb.keys() if not same(fa.get(k), fb.get(k)))
         if differ:
-            print(f"record {i} (update {fa.get('updates')} / {fb.get('updates')}) differs in {len(differ)} fields:")
+            print(f"window {i} (to update {fa.get('updates')}) differs in {len(differ)} fields:")
             for k in differ[:12]:
                 print(f"  {k}: {fa.get(k)!r} vs {fb.get(k)!r}")
             print(f"{i} of {n} shared windows agree before it")
             return 1
-    last = learning_fields(wa[shared[-1]]) if n else {}
+    last = learning_fields(wa[shared[-1]])
     print(f"all {n} shared windows agree in every learning field "
           f"({len(last)} fields; last update {last.get('updates')}, env steps {last.get('env_steps')})")
     return 0
