@@ -404,11 +404,11 @@ fn continuous_actor(
 }
 
 /// The cost the actor is charged for, before lambda x reward_scale:
-/// Qc on the steps of episodes that ended over budget (`violated` 1), or,
+/// Qc on the steps of episodes that ended over budget (`violated` 1; the
+/// termination too, whose multiplier stays at 0 unless it is given one), or,
 /// for the hinge, max(0, Qc - CTG), the predicted remaining cost past the
-/// remaining budget; nothing under Saute, the excess price or the
-/// termination, whose price is in the critics' targets. `violated` and
-/// `ctg` broadcast against `qc`.
+/// remaining budget; nothing under Saute or the excess price, whose price is
+/// in the critics' targets. `violated` and `ctg` broadcast against `qc`.
 pub(super) fn penalised_cost(
     qc: &Tensor,
     violated: &Tensor,
@@ -416,9 +416,9 @@ pub(super) fn penalised_cost(
     form: PenaltyForm,
 ) -> Tensor {
     match form {
-        PenaltyForm::Hindsight => qc * violated,
+        PenaltyForm::Hindsight | PenaltyForm::Terminate => qc * violated,
         PenaltyForm::Hinge => (qc - ctg).relu(),
-        PenaltyForm::Saute | PenaltyForm::Excess | PenaltyForm::Terminate => qc.zeros_like(),
+        PenaltyForm::Saute | PenaltyForm::Excess => qc.zeros_like(),
     }
 }
 

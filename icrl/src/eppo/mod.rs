@@ -78,7 +78,8 @@
 //! overspending does not depend on where an integrator settles on a given
 //! training seed; or the step that overspends ends the critics' value over
 //! the K episodes (`penalty = "terminate"`, an early-terminated MDP), so a
-//! search past the budget is worth nothing to the episodes after it. The
+//! search past the budget is worth nothing to the episodes after it (given
+//! a multiplier, its actor also pays Algorithm 1's penalty). The
 //! constraint (multiplier, price and termination alike) waits
 //! `lambda_warmup_updates`, and with `constraint_after_revisit` also for the
 //! training revisit rate to reach a level (`multiplier::ConstraintStart`):
@@ -427,6 +428,10 @@ impl Learner {
             PenaltyForm::Excess | PenaltyForm::Saute => {
                 format!("over-budget price {:.2}", self.over_budget_price())
             }
+            PenaltyForm::Terminate if self.cfg.constraint.has_multiplier() => format!(
+                "overspending ends the value, lambda {:.4}",
+                self.multiplier.lambda
+            ),
             PenaltyForm::Terminate => "overspending ends the value".to_string(),
             PenaltyForm::Hindsight | PenaltyForm::Hinge => {
                 format!("lambda {:.4}", self.multiplier.lambda)

@@ -102,18 +102,20 @@ impl ConstraintConfig {
         Ok(())
     }
 
+    /// Whether lambda can be other than 0 (it starts above 0, or moves
+    /// under a cap above 0).
+    pub fn has_multiplier(&self) -> bool {
+        self.lambda_init != 0.0 || (self.lambda_lr != 0.0 && self.lambda_max > 0.0)
+    }
+
     /// What each penalty form takes: the multiplier, the price, the
     /// per-episode multipliers.
     fn validate_penalty(&self) -> Result<(), EppoError> {
-        let priced_in_targets = matches!(
-            self.penalty,
-            PenaltyForm::Saute | PenaltyForm::Excess | PenaltyForm::Terminate
-        );
+        let priced_in_targets = matches!(self.penalty, PenaltyForm::Saute | PenaltyForm::Excess);
         if priced_in_targets && (self.lambda_init != 0.0 || self.lambda_lr != 0.0) {
             let form = match self.penalty {
                 PenaltyForm::Saute => "saute",
-                PenaltyForm::Excess => "excess",
-                _ => "terminate",
+                _ => "excess",
             };
             return bad(format!(
                 "penalty = \"{form}\" prices the budget in the critics' targets, so the \
@@ -222,7 +224,11 @@ pub enum PenaltyForm {
     /// past the budget would learn included: under a price, that knowledge
     /// kept search through hazards worth its cost (Point, pc1-pc7). The
     /// environment and the tokens go on, and the later steps, later episodes
-    /// with fresh budgets among them, train as usual.
+    /// with fresh budgets among them, train as usual. With a multiplier
+    /// (`lambda_lr`, `lambda_max` above 0) the actor also pays Eq. (7)'s
+    /// `lambda v_e Q^c`, as under `hindsight`: a trajectory still searching
+    /// has no return to forfeit, and it is the one that overspends (Point
+    /// ladder, session 59).
     Terminate,
 }
 

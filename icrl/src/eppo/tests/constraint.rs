@@ -319,22 +319,19 @@ fn termination_ends_the_critics_value_at_the_step_that_overspends() {
     assert_eq!(before[2], 1.0, "the walk bootstraps there unconstrained");
     assert_eq!(to_vec(&ended.costs), t.costs, "costs as paid");
     assert_eq!(to_vec(&ended.cost_bootstrap), to_vec(&plain.cost_bootstrap));
-    assert_no_actor_penalty(PenaltyForm::Terminate);
     let reading = Learner::new(cfg.clone(), EnvName::DarkRoom)
         .unwrap()
         .penalty_reading();
-    assert!(
-        reading.starts_with("overspending ends the value"),
-        "{reading}"
-    );
-    // The multiplier must stay at 0.
+    assert_eq!(reading, "overspending ends the value");
+    // With a multiplier the actor also pays Eq. (7)'s lambda v_e Qc
+    // (`violation_flag_gates_the_cost_penalty`), and the reading shows it.
     cfg.constraint.lambda_lr = 0.01;
-    let err = cfg.validate().unwrap_err().to_string();
-    assert!(
-        err.contains("penalty = \"terminate\"") && err.contains("lambda_lr = 0"),
-        "{err}"
-    );
-    cfg.constraint.lambda_lr = 0.0;
+    cfg.constraint.lambda_max = 1.0;
+    cfg.validate().unwrap();
+    let reading = Learner::new(cfg.clone(), EnvName::DarkRoom)
+        .unwrap()
+        .penalty_reading();
+    assert_eq!(reading, "overspending ends the value, lambda 0.0000");
     cfg.constraint.over_budget_cost_price = 1.0;
     let err = cfg.validate().unwrap_err().to_string();
     assert!(err.contains("over_budget_cost_price = 1"), "{err}");
@@ -670,23 +667,27 @@ fn policy_loss_at(learner: &Learner, batch: &Batch, lambda: f64) -> f64 {
     lp.double_value(&[])
 }
 
+/// Algorithm 1's actor penalty, under `hindsight` and under the termination
+/// given a multiplier.
 #[test]
 fn violation_flag_gates_the_cost_penalty() {
-    let (learner, mut batch) = penalty_probe(PenaltyForm::Hindsight);
-    let policy_loss = |batch: &Batch, lambda: f64| policy_loss_at(&learner, batch, lambda);
-    batch.violated = batch.valid.zeros_like();
-    let (clean_0, clean_5) = (policy_loss(&batch, 0.0), policy_loss(&batch, 5.0));
-    assert!(
-        (clean_0 - clean_5).abs() < 1e-4,
-        "no violation: lambda has no effect"
-    );
-    batch.violated = batch.valid.ones_like();
-    let (viol_0, viol_5) = (policy_loss(&batch, 0.0), policy_loss(&batch, 5.0));
-    assert!((viol_0 - clean_0).abs() < 1e-4);
-    assert!(
-        (viol_5 - viol_0).abs() > 1e-4,
-        "violated episodes pay lambda * Qc"
-    );
+    for form in [PenaltyForm::Hindsight, PenaltyForm::Terminate] {
+        let (learner, mut batch) = penalty_probe(form);
+        let policy_loss = |batch: &Batch, lambda: f64| policy_loss_at(&learner, batch, lambda);
+        batch.violated = batch.valid.zeros_like();
+        let (clean_0, clean_5) = (policy_loss(&batch, 0.0), policy_loss(&batch, 5.0));
+        assert!(
+            (clean_0 - clean_5).abs() < 1e-4,
+            "{form:?}: no violation, lambda has no effect"
+        );
+        batch.violated = batch.valid.ones_like();
+        let (viol_0, viol_5) = (policy_loss(&batch, 0.0), policy_loss(&batch, 5.0));
+        assert!((viol_0 - clean_0).abs() < 1e-4, "{form:?}");
+        assert!(
+            (viol_5 - viol_0).abs() > 1e-4,
+            "{form:?}: violated episodes pay lambda * Qc"
+        );
+    }
 }
 
 #[test]
