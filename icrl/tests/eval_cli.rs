@@ -31,6 +31,26 @@ fn bad_input_is_refused_with_a_clear_message() {
     assert!(!ok && err.contains("nothing to evaluate"), "{err}");
     let (ok, _, err) = icrl(&["--env", "darkroom", "--budgets", "nan"]);
     assert!(!ok && err.contains("finite"), "{err}");
+    let (ok, _, err) = icrl(&["--env", "darkroom", "--render-task", "1"]);
+    assert!(!ok && err.contains("--render"), "{err}");
+    let (ok, _, err) = icrl(&[
+        "--env",
+        "darkroom",
+        "--tasks",
+        "2",
+        "--episodes",
+        "2",
+        "--n-budgets",
+        "3",
+        "--render",
+        "--render-task",
+        "2",
+    ]);
+    assert!(
+        !ok && err.contains("task index 2) is outside the 3 budgets x 2 tasks")
+            && err.contains("--render-task"),
+        "{err}"
+    );
 }
 
 #[test]
@@ -48,10 +68,20 @@ fn random_policy_evaluation_from_the_command_line() {
         "2",
         "--sweep",
         "--render",
+        "--render-task",
+        "1",
+        "--render-budget",
+        "1",
         "--out",
         &out_s,
     ]);
     assert!(ok, "{err}");
+    // The trajectory asked for is the one recorded and rendered.
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(out.join("random_darkroom.json")).unwrap()).unwrap();
+    let recording = &report["result"]["recording"];
+    assert_eq!(recording["task"], 1, "{recording}");
+    assert_eq!(recording["condition"], 1, "{recording}");
     assert!(
         stdout.contains("random policy darkroom figure1"),
         "{stdout}"

@@ -313,7 +313,7 @@ mod tests {
             rtg: 1.0,
             sweep: false,
             random: false,
-            render: false,
+            render: None,
             out,
             eval_seed: 0,
             batch: 64,

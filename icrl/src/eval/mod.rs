@@ -176,7 +176,7 @@ impl EvalConfig {
             && (c >= self.conditions.len() || t >= self.tasks)
         {
             return Err(EvalError::Config(format!(
-                "recorded trajectory (condition {c}, task {t}) is outside {} conditions x {} tasks",
+                "the rendered trajectory (budget index {c}, task index {t}) is outside the {} budgets x {} tasks evaluated: give --render-budget and --render-task below those",
                 self.conditions.len(),
                 self.tasks
             )));
@@ -1065,7 +1065,7 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(
-            e.contains("recorded trajectory (condition 1, task 2) is outside"),
+            e.contains("rendered trajectory (budget index 1, task index 2) is outside"),
             "{e}"
         );
         let base = EvalConfig {

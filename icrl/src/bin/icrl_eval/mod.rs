@@ -49,6 +49,13 @@ pub struct EvalArgs {
     /// Write an animation (GIF) of one evaluation task across its K episodes.
     #[arg(long)]
     render: bool,
+    /// The task rendered by --render: its index among the --tasks held-out tasks.
+    #[arg(long, default_value_t = 0, requires = "render")]
+    render_task: usize,
+    /// The budget rendered by --render: its index among the evaluated budgets
+    /// (the order of the _conditions.csv rows).
+    #[arg(long, default_value_t = 0, requires = "render")]
+    render_budget: usize,
     /// Output folder.
     #[arg(long, default_value = "results/eval")]
     out: PathBuf,
@@ -102,7 +109,9 @@ pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
         rtg: args.rtg,
         sweep: args.sweep,
         random: !args.no_random,
-        render: args.render,
+        render: args
+            .render
+            .then_some((args.render_budget, args.render_task)),
         out: args.out,
         eval_seed: args.seed,
         batch: args.batch,

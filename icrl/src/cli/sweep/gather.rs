@@ -157,7 +157,7 @@ fn evaluate_run(
             rtg: 1.0,
             sweep: false,
             random: protocol.random,
-            render: false,
+            render: None,
             out: grid
                 .out
                 .join("gather")

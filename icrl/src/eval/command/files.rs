@@ -150,7 +150,7 @@ pub(super) fn check_planned_files(
                     .map(|x| PathBuf::from(format!("{stem}{x}"))),
             );
         }
-        if opts.render {
+        if opts.render.is_some() {
             files.push(
                 opts.out
                     .join(format!("render_{}_{}.gif", a.stem(), opts.env)),

@@ -60,8 +60,9 @@ pub struct EvalOptions {
     pub sweep: bool,
     /// Also evaluate a random policy for scale.
     pub random: bool,
-    /// Write an animation of one task across its K episodes.
-    pub render: bool,
+    /// Write an animation of one trajectory across its K episodes: (budget
+    /// index, task index).
+    pub render: Option<(usize, usize)>,
     pub out: PathBuf,
     pub eval_seed: u64,
     pub batch: usize,
@@ -210,7 +211,7 @@ fn run_one(
     loaded: &mut LoadedAgent,
     sweep: bool,
     opts: &EvalOptions,
-    record: bool,
+    record: Option<(usize, usize)>,
     like: Option<Method>,
     written: &mut Vec<PathBuf>,
 ) -> Result<EvalReport, EvalCmdError> {
@@ -246,7 +247,7 @@ fn run_one(
         threads: opts.threads,
         greedy: opts.greedy,
         pretrain_tasks: loaded.pretrain_tasks.clone(),
-        record: record.then_some((0, 0)),
+        record,
         torch_seed: opts.seed_torch.then_some(opts.eval_seed),
         orientation: if opts.in_distribution {
             Orientation::Centre
@@ -569,9 +570,11 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
     agents.sort_by_key(|a| a.method as u8);
     let mut longest_episodes: Option<usize> = None;
     for (i, loaded) in agents.iter_mut().enumerate() {
-        // Record the first trajectory of every pretrained agent (the random
+        // Record the chosen trajectory of every pretrained agent (the random
         // policy comes last: recorded only when it is alone).
-        let record = opts.render && (loaded.method != Method::Random || i == 0);
+        let record = opts
+            .render
+            .filter(|_| loaded.method != Method::Random || i == 0);
         let mut opts = opts.clone();
         if loaded.method == Method::Random {
             opts.episodes = opts.episodes.or(longest_episodes);
@@ -581,7 +584,9 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
         let report = run_one(loaded, false, opts, record, like, &mut out.files)?;
         longest_episodes = Some(longest_episodes.unwrap_or(0).max(report.episodes));
         out.lines.push(headline(&report));
-        if record && let Some(rec) = &report.result.recording {
+        if record.is_some()
+            && let Some(rec) = &report.result.recording
+        {
             let gif = opts
                 .out
                 .join(format!("render_{}_{}.gif", loaded.stem(), opts.env));
@@ -593,7 +598,7 @@ pub fn run(mut agents: Vec<LoadedAgent>, opts: &EvalOptions) -> Result<EvalOutpu
             _ => fig1.methods.push((loaded.name(), report.summary)),
         }
         if opts.sweep {
-            let report = run_one(loaded, true, opts, false, like, &mut out.files)?;
+            let report = run_one(loaded, true, opts, None, like, &mut out.files)?;
             out.lines.push(headline(&report));
             match loaded.method {
                 Method::Random => fig2.random = Some(report.summary),

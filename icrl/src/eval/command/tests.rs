@@ -10,7 +10,7 @@ fn options(out: PathBuf) -> EvalOptions {
         rtg: 1.0,
         sweep: true,
         random: true,
-        render: false,
+        render: None,
         out,
         eval_seed: 0,
         batch: 64,
