@@ -33,19 +33,11 @@ fn bad_input_is_refused_with_a_clear_message() {
     assert!(!ok && err.contains("finite"), "{err}");
     let (ok, _, err) = icrl(&["--env", "darkroom", "--render-task", "1"]);
     assert!(!ok && err.contains("--render"), "{err}");
-    let (ok, _, err) = icrl(&[
-        "--env",
-        "darkroom",
-        "--tasks",
-        "2",
-        "--episodes",
-        "2",
-        "--n-budgets",
-        "3",
-        "--render",
-        "--render-task",
-        "2",
-    ]);
+    let render_past_the_tasks: Vec<&str> =
+        "--env darkroom --tasks 2 --episodes 2 --n-budgets 3 --render --render-task 2"
+            .split(' ')
+            .collect();
+    let (ok, _, err) = icrl(&render_past_the_tasks);
     assert!(
         !ok && err.contains("task index 2) is outside the 3 budgets x 2 tasks")
             && err.contains("--render-task"),
