@@ -7,7 +7,7 @@
 //! - [`nav`]: SafeDarkMujoco Point and Car, the MuJoCo goal tasks.
 //! - [`make`]: environments by name ([`EnvName`], [`make_env`]).
 //! - [`goal_shown`]: the goal appended to the observation, for the debugging
-//!   ladder only; [`hazards_shown`]: the task's hazard map likewise.
+//!   ladder and Car's goal shown, then hidden.
 //! - [`vec_env`]: [`VecEnv`], many environments stepped across threads.
 //! - [`output`]: output files written atomically, never over what is not
 //!   ours, and the run and output locks.
@@ -16,7 +16,6 @@ pub mod darkroom;
 pub mod env;
 pub mod error;
 pub mod goal_shown;
-pub mod hazards_shown;
 pub mod make;
 pub mod mujoco;
 pub mod nav;
@@ -28,7 +27,6 @@ pub use darkroom::{DarkRoomConfig, SafeDarkRoom};
 pub use env::{Action, CmdpEnv, GoalRule, Space, StepOutcome};
 pub use error::{EnvError, MujocoError};
 pub use goal_shown::GoalShown;
-pub use hazards_shown::HazardsShown;
 pub use make::{EnvName, EnvOptions, make_env, spawn_config};
 pub use nav::{
     NavConfig, OLD_PHYSICS_STEPS_PER_ACTION, PHYSICS_STEPS_PER_ACTION, PHYSICS_STEPS_PER_SG_STEP,

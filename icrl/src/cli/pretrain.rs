@@ -245,7 +245,7 @@ fn check_eppo_resume(path: &Path, saved: &toml::Table, now: &toml::Table) -> Res
 /// Settings a fork keeps: the network's shape, which the checkpoint's
 /// weights must fit (loading would refuse them later; refused here, before
 /// anything is written), its heads and the observation it was sized for.
-const FORK_KEEPS: [&str; 8] = [
+const FORK_KEEPS: [&str; 7] = [
     "model.",
     "encoder_hidden",
     "head_hidden",
@@ -253,7 +253,6 @@ const FORK_KEEPS: [&str; 8] = [
     "goal_recall_coef",
     "novelty_critic",
     "goal_in_observation",
-    "hazards_in_observation",
 ];
 
 /// `pretrain --resume CKPT --fork OUT`: branches a new run under `out` from

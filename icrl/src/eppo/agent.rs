@@ -69,23 +69,21 @@ impl EppoAgent {
         let state: TrainState =
             serde_json::from_str(&text).map_err(|e| bad("state.json", e.to_string()))?;
         if !cfg.goal.slots_ever_hidden() {
-            let (shown, share) = if cfg.goal.goal_in_observation {
-                ("goal_in_observation", "goal_hidden_share")
-            } else {
-                ("hazards_in_observation", "hazard_hidden_share")
-            };
             return Err(EppoError::Checkpoint(CheckpointError::Invalid {
                 path: dir.join("config.toml"),
-                problem: format!(
-                    "it was trained with {shown} = true and {share} = 0, a ladder rung whose \
-                     agent is always shown what the tasks it would be evaluated on hide"
-                ),
-                fix: format!("evaluate a checkpoint trained without {shown}, or with {share} > 0"),
+                problem: "it was trained with goal_in_observation = true and goal_hidden_share \
+                          = 0, a ladder rung whose agent is always shown the goal that the tasks \
+                          it would be evaluated on hide"
+                    .into(),
+                fix: "evaluate a checkpoint trained without goal_in_observation, or with \
+                      goal_hidden_share > 0"
+                    .into(),
             }));
         }
-        let env: EnvName = manifest
+        // A manifest naming no environment this version knows is refused here.
+        manifest
             .env
-            .parse()
+            .parse::<EnvName>()
             .map_err(|e| bad(crate::checkpoint::MANIFEST, format!("{e}")))?;
         // The files decide sizes: check them before building anything.
         cfg.validate()
@@ -127,7 +125,7 @@ impl EppoAgent {
         Ok(EppoAgent {
             _vs: vs,
             net,
-            shown_slots: cfg.goal.shown_slots(env),
+            shown_slots: cfg.goal.shown_slots(),
             spec: state.spec,
             rng: ChaCha8Rng::seed_from_u64(cfg.run.seed),
             cfg,
@@ -141,8 +139,7 @@ impl EppoAgent {
     }
 
     /// The observation width it takes from the environment: its network's,
-    /// less the slots it fills blank itself (`goal_in_observation`,
-    /// `hazards_in_observation`).
+    /// less the slots it fills blank itself (`goal_in_observation`).
     pub fn env_obs_dim(&self) -> usize {
         self.spec.obs_dim - self.shown_slots
     }

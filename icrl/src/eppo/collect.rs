@@ -53,9 +53,8 @@ pub struct RoundStats {
     /// and the fraction with |a| > 0.99; NaN for discrete actions.
     pub action_abs: f64,
     pub action_saturated: f64,
-    /// With shown slots (`goal_in_observation` or `hazards_in_observation`),
-    /// the round's two kinds of trajectory apart; NaN without slots, or where
-    /// a kind is absent.
+    /// With shown goal slots (`goal_in_observation`), the round's two kinds
+    /// of trajectory apart; NaN without slots, or where a kind is absent.
     pub goal_slots: GoalSlotStats,
 }
 
@@ -400,12 +399,12 @@ impl Collector<'_> {
             })
             .collect();
         // Drawn only while some goal is hidden, so other runs keep their stream.
-        let hide_share = self.cfg.goal.hidden_share_at(*self.env_steps);
+        let hide_share = self.cfg.goal.goal_hidden_share_at(*self.env_steps);
         let hidden: Vec<bool> = (0..n)
             .map(|_| hide_share > 0.0 && self.rng.r#gen::<f64>() < hide_share)
             .collect();
         let (od, a) = (self.spec.obs_dim, self.spec.act_flat());
-        let slots = self.cfg.goal.shown_slots(self.env);
+        let slots = self.cfg.goal.shown_slots();
         let mut obs = venv.observations().to_vec();
         hide_slots(&mut obs, od, slots, &hidden);
         InRound {
@@ -811,8 +810,7 @@ pub(super) fn sample_actions(
 }
 
 /// Blanks the `slots` shown at the end of the rows of `obs`, each `od` wide
-/// (the goal of `goal_in_observation`, the hazard map of
-/// `hazards_in_observation`), whose trajectory hides them.
+/// (the goal of `goal_in_observation`), whose trajectory hides them.
 fn hide_slots(obs: &mut [f32], od: usize, slots: usize, hidden: &[bool]) {
     for (row, _) in obs.chunks_mut(od).zip(hidden).filter(|(_, h)| **h) {
         row[od - slots..].fill(0.0);

@@ -138,10 +138,7 @@ use rand::SeedableRng;
 use rand_chacha::ChaCha8Rng;
 use tch::{Device, nn};
 
-use safety_envs::{
-    CmdpEnv, EnvError, EnvName, EnvOptions, GoalRule, GoalShown, HazardsShown, VecEnv, make_env,
-    spawn_config,
-};
+use safety_envs::{CmdpEnv, EnvError, EnvName, EnvOptions, GoalRule, GoalShown, VecEnv, make_env};
 
 pub use agent::EppoAgent;
 pub use checkpoint::{drop_replay, recorded_pretrain_tasks};
@@ -584,8 +581,7 @@ pub fn train(opts: &PretrainOptions) -> Result<PretrainReport, EppoError> {
 
 /// One of the environments training collects in: `env` with the run's time
 /// limit and macro action, its goal in the observation where the ladder's
-/// goal-conditioned rung asks for it (`goal_in_observation`), or its hazard
-/// map where the hazard rung does (`hazards_in_observation`).
+/// goal-conditioned rung asks for it (`goal_in_observation`).
 fn make_training_env(env: EnvName, cfg: &EppoConfig) -> Result<Box<dyn CmdpEnv>, EnvError> {
     let inner = make_env(
         env,
@@ -596,8 +592,6 @@ fn make_training_env(env: EnvName, cfg: &EppoConfig) -> Result<Box<dyn CmdpEnv>,
     )?;
     Ok(if cfg.goal.goal_in_observation {
         Box::new(GoalShown::new(inner))
-    } else if cfg.goal.hazards_in_observation {
-        Box::new(HazardsShown::new(inner, spawn_config(env).grid_size))
     } else {
         inner
     })

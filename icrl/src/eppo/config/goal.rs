@@ -1,16 +1,16 @@
 //! `[goal]`: what pretraining tells the critics or shows the agent of the
-//! goal and the hazards, beyond the paper.
+//! goal, beyond the paper.
 
 use serde::{Deserialize, Serialize};
 
-use safety_envs::{EnvName, GoalShown, HazardsShown, spawn_config};
+use safety_envs::GoalShown;
 
 use crate::guard::{Range, check_numbers};
 
 use super::{EppoError, bad};
 
 /// `[goal]`: what pretraining tells the critics or shows the agent of the
-/// goal (and the hazards) beyond the paper, each off when absent. The
+/// goal beyond the paper, each off when absent. The
 /// tokens, and so everything at evaluation, stay as the paper's.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -63,21 +63,6 @@ pub struct GoalConfig {
     /// from 0 to `goal_hidden_share` (environment steps, as the exploration
     /// schedule, so that collection alone decides it).
     pub goal_hidden_ramp: [u64; 2],
-    /// The robots' ladder's hazard rung: the task's hazard cells appended to
-    /// every observation as a map (`safety_envs::HazardsShown`), so that the
-    /// policy can route around hazards it has not paid for. Not with
-    /// `goal_in_observation` (one kind of slots at a time). Alone, such a
-    /// checkpoint cannot be evaluated (the tasks hide the map).
-    pub hazards_in_observation: bool,
-    /// With `hazards_in_observation`: the share of trajectories whose map is
-    /// blanked once `hazard_hidden_ramp` ends, rising linearly from 0 across
-    /// it, as `goal_hidden_share` does for the goal: routing around a shown
-    /// hazard is learned first, around one the context holds second. A
-    /// checkpoint trained with hidden maps is evaluated with the map blank.
-    pub hazard_hidden_share: f64,
-    /// Environment steps `[from, until]` over which the hidden share rises
-    /// from 0 to `hazard_hidden_share`.
-    pub hazard_hidden_ramp: [u64; 2],
     /// The ladder's "return to a shown goal" rung: the first episode of every
     /// collected trajectory is driven to the goal by the environment's
     /// scripted controller (Point and Car), so the success of episodes 2..K
@@ -86,8 +71,8 @@ pub struct GoalConfig {
 }
 
 impl GoalConfig {
-    /// Shares in [0, 1] and rising ramps; a hidden share, and the dense
-    /// reward's gate, only for what is on; one kind of shown slots at a time.
+    /// Shares in [0, 1] and a rising ramp; a hidden share, and the dense
+    /// reward's gate, only for what is on.
     pub fn validate(&self) -> Result<(), EppoError> {
         check_numbers(&[
             ("relabel_prob", self.relabel_prob, Range::UNIT),
@@ -102,19 +87,12 @@ impl GoalConfig {
                 Range::NON_NEGATIVE,
             ),
             ("goal_hidden_share", self.goal_hidden_share, Range::UNIT),
-            ("hazard_hidden_share", self.hazard_hidden_share, Range::UNIT),
         ])
         .or_else(bad)?;
         if self.dense_reward_after_goal && self.dense_reward_coef == 0.0 {
             return bad(
                 "dense_reward_after_goal = true pays nothing with dense_reward_coef = 0: \
                  set dense_reward_coef > 0, or drop dense_reward_after_goal"
-                    .to_string(),
-            );
-        }
-        if self.hazards_in_observation && self.goal_in_observation {
-            return bad(
-                "hazards_in_observation and goal_in_observation both append slots to the observation: set one of them to false"
                     .to_string(),
             );
         }
@@ -131,70 +109,39 @@ impl GoalConfig {
                 self.goal_hidden_ramp
             ));
         }
-        if self.hazard_hidden_share > 0.0 && !self.hazards_in_observation {
-            return bad(
-                "hazard_hidden_share > 0 hides the hazard map of hazards_in_observation in some trajectories: set hazards_in_observation = true, or hazard_hidden_share = 0"
-                    .to_string(),
-            );
-        }
-        if self.hazard_hidden_ramp[0] > self.hazard_hidden_ramp[1] {
-            return bad(format!(
-                "hazard_hidden_ramp = {:?} must rise ([from, until] environment steps, from <= until)",
-                self.hazard_hidden_ramp
-            ));
-        }
         Ok(())
-    }
-}
-
-/// 0 before `[from, until]`, 1 after, linear across it.
-fn ramp_at([from, until]: [u64; 2], env_steps: u64) -> f64 {
-    if env_steps >= until {
-        1.0
-    } else if env_steps <= from {
-        0.0
-    } else {
-        (env_steps - from) as f64 / (until - from) as f64
     }
 }
 
 impl GoalConfig {
     /// The share of trajectories collected after `env_steps` environment
-    /// steps whose goal is hidden (`goal_hidden_share`, `goal_hidden_ramp`).
+    /// steps whose goal is hidden: `goal_hidden_share`, reached linearly
+    /// across `goal_hidden_ramp`.
     pub fn goal_hidden_share_at(&self, env_steps: u64) -> f64 {
-        self.goal_hidden_share * ramp_at(self.goal_hidden_ramp, env_steps)
+        let [from, until] = self.goal_hidden_ramp;
+        let ramp = if env_steps >= until {
+            1.0
+        } else if env_steps <= from {
+            0.0
+        } else {
+            (env_steps - from) as f64 / (until - from) as f64
+        };
+        self.goal_hidden_share * ramp
     }
 
-    /// The entries appended to `env`'s observation: the goal slots
-    /// (`goal_in_observation`), the hazard map (`hazards_in_observation`),
-    /// or none. The agent fills them itself.
-    pub fn shown_slots(&self, env: EnvName) -> usize {
+    /// The entries appended to the environment's observation: the goal
+    /// slots (`goal_in_observation`), or none. The agent fills them itself.
+    pub fn shown_slots(&self) -> usize {
         if self.goal_in_observation {
             GoalShown::SLOTS
-        } else if self.hazards_in_observation {
-            HazardsShown::slots(spawn_config(env).grid_size)
         } else {
             0
         }
     }
 
-    /// The share of the trajectories collected after `env_steps` environment
-    /// steps whose shown slots are blanked (goal or hazard map).
-    pub fn hidden_share_at(&self, env_steps: u64) -> f64 {
-        if self.hazards_in_observation {
-            self.hazard_hidden_share * ramp_at(self.hazard_hidden_ramp, env_steps)
-        } else {
-            self.goal_hidden_share_at(env_steps)
-        }
-    }
-
-    /// Whether the shown slots are ever blanked, so that the agent can be
-    /// evaluated with them blank.
+    /// Whether the shown goal slots are ever blanked, so that the agent can
+    /// be evaluated with them blank.
     pub fn slots_ever_hidden(&self) -> bool {
-        match (self.goal_in_observation, self.hazards_in_observation) {
-            (true, _) => self.goal_hidden_share > 0.0,
-            (_, true) => self.hazard_hidden_share > 0.0,
-            _ => true,
-        }
+        !self.goal_in_observation || self.goal_hidden_share > 0.0
     }
 }

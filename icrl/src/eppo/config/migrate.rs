@@ -10,7 +10,7 @@ use super::{EppoConfig, EppoError};
 /// and the last commit that had it (`git checkout` it to rerun such a config). A config written before the
 /// removal still loads where it holds one at that value; one that used it is
 /// refused by name.
-pub const RETIRED: [(&str, Option<&str>, &str); 22] = [
+pub const RETIRED: [(&str, Option<&str>, &str); 25] = [
     // The PID Lagrangian (results/eppo_darkroom_budget, issue 18).
     ("lambda_kp", Some("0.0"), PID_AND_LATE_RATE),
     ("lambda_kd", Some("0.0"), PID_AND_LATE_RATE),
@@ -94,6 +94,11 @@ pub const RETIRED: [(&str, Option<&str>, &str); 22] = [
     // A reward at the step whose overspending ends the value under
     // penalty = "terminate" (Point pt2: -1 did not help pt1's 0).
     ("termination_reward", Some("0.0"), TERMINATION_REWARD),
+    // The task's hazard map in the observation, hidden in a rising share of
+    // trajectories (Point pe3: the agent that saw the map crossed it too).
+    ("hazards_in_observation", Some("false"), HAZARD_MAP),
+    ("hazard_hidden_share", Some("0.0"), HAZARD_MAP),
+    ("hazard_hidden_ramp", None, HAZARD_MAP),
 ];
 
 const PID_AND_LATE_RATE: &str = "b1f1bdb663c9833aefcfffa79f077dcd3d455b0b";
@@ -102,6 +107,7 @@ const HAZARD_RECALL: &str = "8a5cee241507924037a24029831611b616eec709";
 const NOVELTY_SHAPES_AND_RAMP: &str = "1096eed9892161592b2878611d3cef89371e88d3";
 const SEARCH_AND_PRICE_VARIANTS: &str = "9441cf84b763fafdac321359355efe089241a33d";
 const TERMINATION_REWARD: &str = "a90f1fd2ff672362480194053975e382ab8de2f8";
+const HAZARD_MAP: &str = "407d3a293586c689f7a4f88e4a4378db462226a7";
 
 /// Drops the [`RETIRED`] settings of `table`, flat or in a section, that
 /// hold their inert value; refuses one that does not, naming it.
@@ -260,9 +266,6 @@ impl EppoConfig {
                 "goal_in_observation",
                 "goal_hidden_share",
                 "goal_hidden_ramp",
-                "hazards_in_observation",
-                "hazard_hidden_share",
-                "hazard_hidden_ramp",
                 "scripted_first_episode",
             ],
         ),

@@ -789,6 +789,11 @@ fn configs_from_before_the_retirement_load_or_are_refused_by_name() {
     let pt2 = table("eppo_point_ladder/pt2_ps8_terminate_reward-1/config.toml");
     let err = EppoConfig::from_table("pt2", pt2).unwrap_err().to_string();
     assert!(err.contains("termination_reward = -1"), "{err}");
+    let pe3 = table(
+        "eppo_point_ladder/pe3_preset_hazards_shown_then_hidden/point__eppo__0__20261207T063452/config.toml",
+    );
+    let err = EppoConfig::from_table("pe3", pe3).unwrap_err().to_string();
+    assert!(err.contains("hazards_in_observation = true"), "{err}");
     let late = table("eppo_darkroom_budget/lr1_late_rate/config.toml");
     let err = EppoConfig::from_table("lr1", late).unwrap_err().to_string();
     assert!(err.contains("violation_signal = \"late_rate\""), "{err}");
