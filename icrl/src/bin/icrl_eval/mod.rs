@@ -65,7 +65,10 @@ pub struct EvalArgs {
     /// Trajectories acted on together.
     #[arg(long, default_value_t = 256, allow_hyphen_values = true, value_parser = crate::parse_count)]
     batch: usize,
-    /// Threads (environment stepping and libtorch); default: all cores.
+    /// Threads (environment stepping and libtorch); default: all cores. A
+    /// reading repeats exactly under the same seed and thread count; on the
+    /// robots another thread count can change some trajectories (a last-bit
+    /// difference that contacts amplify), so a claim names its count.
     #[arg(long, allow_hyphen_values = true, value_parser = crate::parse_count)]
     threads: Option<usize>,
     /// Act with the policy's mode instead of sampling.
