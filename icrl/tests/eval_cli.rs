@@ -39,8 +39,8 @@ fn bad_input_is_refused_with_a_clear_message() {
             .collect();
     let (ok, _, err) = icrl(&render_past_the_tasks);
     assert!(
-        !ok && err.contains("task index 2) is outside the 3 budgets x 2 tasks")
-            && err.contains("--render-task"),
+        !ok && err.contains("--render-budget 0 --render-task 2: the rendered trajectory")
+            && err.contains("outside the 3 budgets x 2 tasks"),
         "{err}"
     );
 }

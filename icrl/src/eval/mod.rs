@@ -176,7 +176,8 @@ impl EvalConfig {
             && (c >= self.conditions.len() || t >= self.tasks)
         {
             return Err(EvalError::Config(format!(
-                "the rendered trajectory (budget index {c}, task index {t}) is outside the {} budgets x {} tasks evaluated: give --render-budget and --render-task below those",
+                "record = (budget index {c}, task index {t}) is outside the {} budgets x {} tasks \
+                 evaluated: record one below those counts (indices count from 0)",
                 self.conditions.len(),
                 self.tasks
             )));
@@ -1065,7 +1066,7 @@ mod tests {
             .unwrap_err()
             .to_string();
         assert!(
-            e.contains("rendered trajectory (budget index 1, task index 2) is outside"),
+            e.contains("record = (budget index 1, task index 2) is outside"),
             "{e}"
         );
         let base = EvalConfig {

@@ -474,9 +474,20 @@ impl EvalOptions {
                 "--budgets: {b} must be in [{lo}, {hi}] (a cost budget per episode)"
             ));
         }
+        let n_conditions = self.budgets.as_ref().map_or(self.n_budgets, Vec::len);
+        if let Some((budget, task)) = self.render
+            && (budget >= n_conditions || task >= self.tasks)
+        {
+            return bad(format!(
+                "--render-budget {budget} --render-task {task}: the rendered trajectory (budget \
+                 index {budget}, task index {task}) is outside the {n_conditions} budgets x {} tasks \
+                 evaluated; give each below its count (they count from 0)",
+                self.tasks
+            ));
+        }
         // The work, before its memory: an evaluation of hours with no end in
         // sight is refused, not started.
-        let conds = self.budgets.as_ref().map_or(self.n_budgets, Vec::len) as u128;
+        let conds = n_conditions as u128;
         let k = self.episodes.unwrap_or(env_defaults(self.env).episodes) as u128;
         let episodes = conds * self.tasks as u128 * k;
         if episodes > MAX_EVAL_EPISODES {
