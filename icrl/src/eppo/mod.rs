@@ -46,29 +46,29 @@
 //! sampled trajectories of max_k (C_k - delta), 0, lambda_max)
 //! (`multiplier.rs`).
 //!
-//! Levers for the robots' ladder, off in every preset until a run shows they
-//! help (results/eppo_point_ladder): hindsight task relabelling of replayed
-//! trajectories (`relabel_prob`, `relabel.rs`), a dense reward for the
-//! critics only (`dense_reward_coef`; tokens stay sparse; with
-//! `dense_reward_after_goal`, only once a success is in the context, where
-//! the agent can know the goal), a scripted first
-//! episode that shows the goal (`scripted_first_episode`), an auxiliary loss
-//! that reads the found goal off the trajectory encoding
-//! (`goal_recall_coef`), SAC's automatic temperature (`target_entropy`:
-//! the entropy weight tuned so that a continuous actor cannot collapse onto
-//! its action bounds) and the goal in the observation (`goal_in_observation`:
-//! driving to a position without recalling it; a diagnostic never evaluated,
-//! unless `goal_hidden_share` hides it in a share of the trajectories that
-//! rises over training, so that one policy learns to drive to a shown goal
-//! and then to read a found one from its context).
+//! Levers from the robots' ladder (results/eppo_point_ladder,
+//! eppo_car_ladder), each off unless a preset sets it: hindsight task
+//! relabelling of replayed trajectories (`relabel_prob`, `relabel.rs`), a
+//! dense reward for the critics only (`dense_reward_coef`; tokens stay sparse;
+//! with `dense_reward_after_goal`, only once a success is in the context,
+//! where the agent can know the goal) and SAC's automatic temperature
+//! (`target_entropy`: the entropy weight tuned so that a continuous actor
+//! cannot collapse onto its action bounds), in both robot presets; the goal
+//! in the observation (`goal_in_observation`), hidden in a share of the
+//! trajectories that rises over training (`goal_hidden_share`), so that one
+//! policy learns to drive to a shown goal and then to read a found one from
+//! its context, with an auxiliary loss that reads the found goal off the
+//! trajectory encoding (`goal_recall_coef`), in Car's; and a scripted first
+//! episode that shows the goal (`scripted_first_episode`), a diagnostic rung
+//! in none.
 //!
-//! Levers for the budget ladder (results/eppo_darkroom_budget), likewise off
-//! until measured: a critic-only bonus for cells new to the trajectory
-//! until its first success (`novelty_bonus`; gated by the budget with `novelty_budget`:
-//! withheld past it, or scaled by the share of it left; learned by critics
-//! of its own that the actor weighs only until its context holds a success,
-//! with `novelty_critic`), the actor's
-//! penalty at decision time,
+//! Levers from the budget ladder (results/eppo_darkroom_budget), likewise
+//! off unless a preset sets them: a critic-only bonus for cells new to the
+//! trajectory until its first success (`novelty_bonus`, in every robot and
+//! grid preset; gated by the budget with `novelty_budget`: withheld past it,
+//! or scaled by the share of it left, the grid's; learned by critics of its
+//! own that the actor weighs only until its context holds a success, with
+//! `novelty_critic`, the robots'), the actor's penalty at decision time,
 //! max(0, Qc - CTG_t), instead of Algorithm 1's hindsight flag
 //! (`penalty = "hinge"`), and no multiplier at all: once an episode has spent
 //! its budget, the critics' reward for its remaining steps is a fixed
@@ -85,8 +85,11 @@
 //! training revisit rate to reach a level (`multiplier::ConstraintStart`):
 //! priced before the agent comes back to the goals it finds, it learns to
 //! search and never to come back (dx1). `over_budget_price_schedule` raises
-//! the price in steps after that start: the price that lets search survive the start is
-//! too low to make the budget bind later (dw1 -> dw1q).
+//! the price in steps after that start: the price that lets search survive
+//! the start is too low to make the budget bind later (dw1 -> dw1q). The
+//! presets: the grid's `excess` with a scheduled price, Car's `terminate`
+//! from update 6000, Point's Algorithm 1 flag with Eq. (7) from its revisit
+//! gate.
 //!
 //! Metrics (`metrics.jsonl`, one record per collection round, against
 //! `env_steps`): `episodic_return`, `episodic_cost` (means over the episodes
