@@ -96,7 +96,7 @@ fn the_section_table_names_every_setting_once() {
     unique.sort_unstable();
     unique.dedup();
     assert_eq!(unique.len(), all.len(), "a name in two sections");
-    assert_eq!(all.len(), 71 + 2, "71 settings and 2 older names");
+    assert_eq!(all.len(), 68 + 2, "68 settings and 2 older names");
 }
 
 /// Every committed EPPO config (all written flat, before the sections)
