@@ -10,8 +10,8 @@ use crate::guard::{Range, check_numbers};
 use super::{EppoError, bad};
 
 /// `[goal]`: what pretraining tells the critics or shows the agent of the
-/// goal beyond the paper, each off when absent. The
-/// tokens, and so everything at evaluation, stay as the paper's.
+/// goal beyond the paper, each off when absent. The tokens, and so
+/// everything at evaluation, stay as the paper's.
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
 pub struct GoalConfig {
