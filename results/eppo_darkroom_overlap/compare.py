@@ -26,10 +26,14 @@ def main(folder, a="sync", b="overlap"):
         rev = [x["revisit"]["mean"] for x in e if x["k"] > 1 and x["revisit"]["mean"] is not None]
         print(f"  mean over k {mean:.3f}  found by 16 {e[-1]['found_by']['mean']:.2f}"
               f"  revisit {sum(rev) / len(rev):.2f}  over budget at 16 {e[-1]['violation']['mean']:.2f}")
-    gaps = [abs(x["ret"]["mean"] - y["ret"]["mean"])
-            / math.sqrt(x["ret"]["se"] ** 2 + y["ret"]["se"] ** 2 or 1e-12)
-            for x, y in zip(ea, eb)]
-    print(f"largest gap over k: {max(gaps):.2f} s.e.")
+    print(f"largest gap over k: {largest_gap(ea, eb):.2f} s.e.")
+
+
+def largest_gap(ea, eb):
+    """The largest |a - b| / sqrt(se_a^2 + se_b^2) of the return over k."""
+    return max(abs(x["ret"]["mean"] - y["ret"]["mean"])
+               / math.sqrt(x["ret"]["se"] ** 2 + y["ret"]["se"] ** 2 or 1e-12)
+               for x, y in zip(ea, eb))
 
 
 if __name__ == "__main__":
