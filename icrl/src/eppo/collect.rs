@@ -18,7 +18,7 @@ use super::config::{EppoConfig, EppoError};
 use super::net::{EppoNet, NetSpec};
 use super::replay::{Trajectory, novel_arrivals, push_token};
 use super::timing::PhaseTimes;
-use crate::agent::StepInput;
+use crate::agent::{NextInput, StepInput};
 use crate::model::KvCache;
 use crate::signals::CostMemory;
 use crate::task_seeds::pretrain_task_seed;
@@ -415,12 +415,7 @@ impl Collector<'_> {
             od,
             a,
             slots,
-            obs,
-            arrived: vec![0f32; n * od],
-            prev_action: vec![0f32; n * a],
-            reward: vec![0f32; n],
-            cost: vec![0f32; n],
-            start: vec![true; n],
+            next: NextInput::first(obs, od, a),
             ep_ret: vec![0f32; n],
             ep_cost: vec![0f32; n],
             steps: 0,
@@ -531,12 +526,7 @@ struct InRound {
     od: usize,
     a: usize,
     slots: usize,
-    obs: Vec<f32>,
-    arrived: Vec<f32>,
-    prev_action: Vec<f32>,
-    reward: Vec<f32>,
-    cost: Vec<f32>,
-    start: Vec<bool>,
+    next: NextInput,
     /// Return and cost of each running episode so far.
     ep_ret: Vec<f32>,
     ep_cost: Vec<f32>,
@@ -547,14 +537,7 @@ struct InRound {
 impl InRound {
     /// The policy's input at the next step.
     fn input(&self) -> StepInput<'_> {
-        StepInput {
-            obs: &self.obs,
-            arrived_obs: &self.arrived,
-            prev_action: &self.prev_action,
-            reward: &self.reward,
-            cost: &self.cost,
-            episode_start: &self.start,
-        }
+        self.next.input()
     }
 
     /// Appends the step's input and action to each active trajectory.
@@ -562,14 +545,15 @@ impl InRound {
         let (od, a) = (self.od, self.a);
         for i in (0..self.trajs.len()).filter(|&i| self.active[i]) {
             let t = &mut self.trajs[i];
-            t.obs.extend_from_slice(&self.obs[i * od..(i + 1) * od]);
+            t.obs
+                .extend_from_slice(&self.next.obs[i * od..(i + 1) * od]);
             t.actions
                 .extend_from_slice(&net_actions[i * a..(i + 1) * a]);
             if let EnvActions::Discrete(idx) = env_actions {
                 t.action_idx.push(idx[i] as i64);
             }
             t.ctg.push(ctg_now[i]);
-            t.start.push(self.start[i]);
+            t.start.push(self.next.start[i]);
             t.episode.push(t.episode_returns.len() as u32);
         }
     }
@@ -578,25 +562,14 @@ impl InRound {
     /// what each active trajectory received.
     fn record_outcomes(&mut self, venv: &VecEnv, outcomes: &[StepOutcome], net_actions: &[f32]) {
         let (od, a, slots) = (self.od, self.a, self.slots);
-        self.obs.copy_from_slice(venv.observations());
-        hide_slots(&mut self.obs, od, slots, &self.hidden);
+        self.next.obs.copy_from_slice(venv.observations());
+        hide_slots(&mut self.next.obs, od, slots, &self.hidden);
         for (i, &o) in outcomes.iter().enumerate() {
-            // Where the action led: the final observation when it ended
-            // the episode (the auto-reset already replaced `obs`).
-            let reached = if o.done() {
-                venv.final_observations()
-            } else {
-                venv.observations()
-            };
-            let arrived_row = &mut self.arrived[i * od..(i + 1) * od];
-            arrived_row.copy_from_slice(&reached[i * od..(i + 1) * od]);
+            self.next
+                .take_outcome(i, &o, &net_actions[i * a..(i + 1) * a], venv);
             if self.hidden[i] {
-                arrived_row[od - slots..].fill(0.0);
+                self.next.arrived_row(i)[od - slots..].fill(0.0);
             }
-            self.reward[i] = o.reward;
-            self.cost[i] = o.cost;
-            self.start[i] = o.done();
-            self.prev_action[i * a..(i + 1) * a].copy_from_slice(&net_actions[i * a..(i + 1) * a]);
             if self.active[i] {
                 self.extend_trajectory(i, o);
             }
@@ -610,7 +583,7 @@ impl InRound {
         self.steps += 1;
         let t = &mut self.trajs[i];
         t.next_obs
-            .extend_from_slice(&self.arrived[i * od..(i + 1) * od]);
+            .extend_from_slice(&self.next.arrived[i * od..(i + 1) * od]);
         t.rewards.push(o.reward);
         t.costs.push(o.cost);
         // Kept apart all the way into the TD targets (see make_batch).

@@ -54,7 +54,7 @@ use safety_envs::{
 use serde::{Deserialize, Serialize};
 use thiserror::Error;
 
-use crate::agent::{Actions, AgentError, Conditioning, InContextAgent, StepInput};
+use crate::agent::{Actions, AgentError, Conditioning, InContextAgent, NextInput, StepInput};
 use crate::signals::{CostMemory, position_cell};
 use crate::task_seeds::{self, PretrainTasks, SeedError};
 
@@ -412,80 +412,6 @@ impl RowState {
     }
 }
 
-/// What a batch's agent is given at the next step, row by row.
-struct BatchInput {
-    obs_dim: usize,
-    act_dim: usize,
-    obs: Vec<f32>,
-    arrived: Vec<f32>,
-    prev_action: Vec<f32>,
-    reward: Vec<f32>,
-    cost: Vec<f32>,
-    start: Vec<bool>,
-}
-
-impl BatchInput {
-    /// The first step's: the environments' observations after their reset.
-    fn new(venv: &VecEnv, obs_dim: usize, act_dim: usize) -> Self {
-        let b = venv.len();
-        BatchInput {
-            obs_dim,
-            act_dim,
-            obs: venv.observations().to_vec(),
-            arrived: vec![0.0f32; b * obs_dim],
-            prev_action: vec![0.0f32; b * act_dim],
-            reward: vec![0.0f32; b],
-            cost: vec![0.0f32; b],
-            start: vec![true; b],
-        }
-    }
-
-    fn step_input(&self) -> StepInput<'_> {
-        StepInput {
-            obs: &self.obs,
-            arrived_obs: &self.arrived,
-            prev_action: &self.prev_action,
-            reward: &self.reward,
-            cost: &self.cost,
-            episode_start: &self.start,
-        }
-    }
-
-    /// Row `i`'s next input from its outcome `o`: the action taken (one-hot
-    /// for a discrete one), the reward, the cost, whether an episode starts,
-    /// and the observation arrived at (the final one where the episode ended).
-    fn take_outcome(
-        &mut self,
-        i: usize,
-        o: StepOutcome,
-        actions: &Actions,
-        continuous: &[f32],
-        venv: &VecEnv,
-    ) {
-        let (obs_dim, act_dim) = (self.obs_dim, self.act_dim);
-        let row_action = &mut self.prev_action[i * act_dim..(i + 1) * act_dim];
-        match actions {
-            Actions::Discrete(a) => {
-                row_action.fill(0.0);
-                row_action[a[i]] = 1.0;
-            }
-            Actions::Continuous(_) => {
-                row_action.copy_from_slice(&continuous[i * act_dim..(i + 1) * act_dim]);
-            }
-        }
-        self.reward[i] = o.reward;
-        self.cost[i] = o.cost;
-        self.start[i] = o.done();
-        let reached = if o.done() {
-            venv.final_observations()
-        } else {
-            venv.observations()
-        };
-        self.arrived[i * obs_dim..(i + 1) * obs_dim]
-            .copy_from_slice(&reached[i * obs_dim..(i + 1) * obs_dim]);
-    }
-}
-
 #[allow(clippy::too_many_arguments)]
 fn run_batch(
     agent: &mut dyn InContextAgent,
@@ -507,7 +433,8 @@ fn run_batch(
     let mut state = vec![RowState::default(); b];
     let mut visited = vec![HashSet::new(); b];
     let mut cost_memory = vec![CostMemory::new(cfg.repeat_radius); b];
-    let mut input = BatchInput::new(venv, obs_dim, act_dim);
+    let mut input = NextInput::first(venv.observations().to_vec(), obs_dim, act_dim);
+    let mut action_row = vec![0.0f32; act_dim];
     let mut discrete = Vec::with_capacity(b);
     let mut continuous = Vec::with_capacity(b * act_dim);
     let max_steps = k_n * t_max;
@@ -533,13 +460,22 @@ fn run_batch(
         {
             seen.insert(position_cell(&input.obs[i * obs_dim..], cfg.search_cell));
         }
-        let actions = agent.act(&input.step_input(), cfg.greedy)?;
+        let actions = agent.act(&input.input(), cfg.greedy)?;
         let outcomes = step_envs(venv, &actions, act_space, &mut discrete, &mut continuous)?;
 
         let mut finished = 0;
         for i in 0..b {
             let o = outcomes[i];
-            input.take_outcome(i, o, &actions, &continuous, venv);
+            match &actions {
+                Actions::Discrete(a) => {
+                    action_row.fill(0.0);
+                    action_row[a[i]] = 1.0;
+                }
+                Actions::Continuous(_) => {
+                    action_row.copy_from_slice(&continuous[i * act_dim..(i + 1) * act_dim]);
+                }
+            }
+            input.take_outcome(i, &o, &action_row, venv);
             if recorded_row == Some(i)
                 && let Some(r) = recording.as_mut()
                 && state[i].done < k_n
