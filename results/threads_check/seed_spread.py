@@ -28,3 +28,8 @@ for seed in (139, 149):
     for label in ("two-threads", "one-thread"):
         a, b = (per_episode(f"{HERE}/seed{n}/eval_seed{seed}/eppo_{label}_darkroom.json") for n in (0, 1))
         print(f"evaluation seed {seed}: {label}, training seed 0 vs 1: {largest_gap(a, b):.2f} s.e.")
+# Car: the main job's two final runs (two threads, training seeds 0 and 1) on the same 16 tasks x 8 budgets.
+CAR = "results/final/car"
+for where in ("eval_tuning_seed11_8budgets", "eval_tuning_seed13_8budgets", "eval_seed73", "eval_seed79"):
+    a, b = (per_episode(f"{CAR}/seed{n}/{where}/eppo_seed{n}_car.json") for n in (0, 1))
+    print(f"car {where}: two threads, training seed 0 vs 1: {largest_gap(a, b):.2f} s.e.")
