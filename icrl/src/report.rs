@@ -200,6 +200,68 @@ pub struct Summary {
     pub max_cost_slope: Option<MeanSe>,
 }
 
+impl Summary {
+    /// Several evaluations' summaries as one curve (runs of one setting at
+    /// several evaluation seeds, say): every statistic is the mean of the
+    /// parts' means with the standard error over the parts, so the spread
+    /// between runs shows, not only between tasks. Parts without a value
+    /// (a NaN rate) are left out of that statistic. The budget sweep is not
+    /// pooled (its conditions differ between evaluations): empty. `parts`
+    /// hold the same number of episodes.
+    pub fn pooled(parts: &[Summary]) -> Summary {
+        let pool = |get: &dyn Fn(&Summary) -> MeanSe| {
+            let means: Vec<f64> = parts
+                .iter()
+                .map(|p| get(p).mean)
+                .filter(|m| m.is_finite())
+                .collect();
+            ms(&means)
+        };
+        let episodes = parts.iter().map(|p| p.per_episode.len()).min().unwrap_or(0);
+        let per_episode = (0..episodes)
+            .map(|k| {
+                let at = |get: fn(&EpisodeStats) -> MeanSe| pool(&|p| get(&p.per_episode[k]));
+                EpisodeStats {
+                    k: k + 1,
+                    ret: at(|e| e.ret),
+                    cost: at(|e| e.cost),
+                    violation: at(|e| e.violation),
+                    success: at(|e| e.success),
+                    discovery: at(|e| e.discovery),
+                    revisit: at(|e| e.revisit),
+                    found_by: at(|e| e.found_by),
+                    search_new_cells: at(|e| e.search_new_cells),
+                    repeat_cost: at(|e| e.repeat_cost),
+                }
+            })
+            .collect();
+        let trend = |get: fn(&Trend) -> MeanSe| pool(&|p| get(&p.trend));
+        let slope = |get: fn(&Summary) -> Option<MeanSe>| {
+            parts
+                .iter()
+                .all(|p| get(p).is_some())
+                .then(|| pool(&|p| get(p).unwrap_or_else(MeanSe::undefined)))
+        };
+        Summary {
+            per_episode,
+            per_condition: Vec::new(),
+            trend: Trend {
+                window: parts.first().map_or(1, |p| p.trend.window),
+                first_return: trend(|t| t.first_return),
+                last_return: trend(|t| t.last_return),
+                return_gain: trend(|t| t.return_gain),
+                first_cost: trend(|t| t.first_cost),
+                last_cost: trend(|t| t.last_cost),
+                cost_drop: trend(|t| t.cost_drop),
+            },
+            mean_budget: parts.iter().map(|p| p.mean_budget).sum::<f32>()
+                / parts.len().max(1) as f32,
+            total_return_slope: slope(|p| p.total_return_slope),
+            max_cost_slope: slope(|p| p.max_cost_slope),
+        }
+    }
+}
+
 /// Least-squares slope of `ys` against `xs`; `None` when the x values do not vary.
 fn slope(xs: &[f64], ys: &[f64]) -> Option<f64> {
     let n = xs.len() as f64;
@@ -462,4 +524,83 @@ pub struct EvalReport {
     pub wall_seconds: f64,
     pub summary: Summary,
     pub result: EvalResult,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn value(mean: f64) -> MeanSe {
+        MeanSe {
+            mean,
+            se: 0.5,
+            n: 16,
+        }
+    }
+
+    /// A summary whose every statistic at episode k is `base + k`, the
+    /// revisit rate undefined where `no_revisit`.
+    fn summary(base: f64, no_revisit: bool) -> Summary {
+        let stats = |k: usize| {
+            let v = value(base + k as f64);
+            EpisodeStats {
+                k: k + 1,
+                ret: v,
+                cost: v,
+                violation: v,
+                success: v,
+                discovery: v,
+                revisit: if no_revisit { MeanSe::undefined() } else { v },
+                found_by: v,
+                search_new_cells: v,
+                repeat_cost: v,
+            }
+        };
+        let v = value(base);
+        Summary {
+            per_episode: (0..3).map(stats).collect(),
+            per_condition: Vec::new(),
+            trend: Trend {
+                window: 1,
+                first_return: v,
+                last_return: v,
+                return_gain: v,
+                first_cost: v,
+                last_cost: v,
+                cost_drop: v,
+            },
+            mean_budget: base as f32,
+            total_return_slope: Some(v),
+            max_cost_slope: None,
+        }
+    }
+
+    #[test]
+    fn pooled_summaries_average_the_means_with_the_spread_between_them() {
+        let pooled =
+            Summary::pooled(&[summary(1.0, false), summary(3.0, false), summary(5.0, true)]);
+        assert_eq!(pooled.per_episode.len(), 3);
+        let at = &pooled.per_episode[2];
+        assert_eq!(at.k, 3);
+        // Means 3, 5, 7: mean 5, s.e. 2 / sqrt(3) over the three parts (not
+        // the parts' own s.e. of 0.5).
+        assert!((at.ret.mean - 5.0).abs() < 1e-12 && at.ret.n == 3);
+        assert!((at.cost.se - 2.0 / 3f64.sqrt()).abs() < 1e-12);
+        // The part without a revisit rate is left out of that statistic only.
+        assert!((at.revisit.mean - 4.0).abs() < 1e-12 && at.revisit.n == 2);
+        assert!((pooled.trend.return_gain.mean - 3.0).abs() < 1e-12);
+        assert_eq!(pooled.mean_budget, 3.0);
+        assert!((pooled.total_return_slope.unwrap().mean - 3.0).abs() < 1e-12);
+        assert_eq!(pooled.max_cost_slope, None, "undefined in every part");
+        assert!(pooled.per_condition.is_empty());
+        // Parts of different lengths pool the episodes they all hold.
+        let mut short = summary(0.0, false);
+        short.per_episode.truncate(2);
+        assert_eq!(
+            Summary::pooled(&[summary(1.0, false), short])
+                .per_episode
+                .len(),
+            2
+        );
+    }
 }

@@ -14,7 +14,9 @@ pub struct EvalArgs {
     #[arg(long, value_name = "DIR")]
     checkpoint: Vec<PathBuf>,
     /// A name for each --checkpoint, in order, in legends and file names
-    /// (e.g. to compare AD trained on 25%, 50% and 100% of a dataset).
+    /// (e.g. to compare AD trained on 25%, 50% and 100% of a dataset). With
+    /// --from: a name for each folder, whose reports below it (several runs
+    /// and evaluation seeds, say) are pooled into one curve of Figure 1.
     #[arg(long, value_name = "NAME")]
     label: Vec<String>,
     /// Environment (required unless --from).
@@ -89,7 +91,7 @@ pub struct EvalArgs {
 
 pub fn eval(args: EvalArgs) -> anyhow::Result<()> {
     if !args.from.is_empty() {
-        let out = command::replot(&args.from, &args.out, args.force)?;
+        let out = command::replot(&args.from, &args.label, &args.out, args.force)?;
         for line in &out.lines {
             println!("{line}");
         }

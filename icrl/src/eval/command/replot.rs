@@ -1,5 +1,7 @@
 //! `eval --from DIR`: Figures 1 and 2 redrawn with one column per
-//! environment from the JSON reports of earlier runs.
+//! environment from the JSON reports of earlier runs; with `--label`, one
+//! curve per folder, pooled over the reports below it (an ablation's runs
+//! against the preset's).
 
 use std::path::{Path, PathBuf};
 
@@ -18,7 +20,12 @@ use super::*;
 /// reports earlier `eval` runs wrote into `dirs` (files that are not reports
 /// are skipped). Writes `figure1_all` and, when sweeps are present,
 /// `figure2_all` (PNG and SVG) into `out`.
-pub fn replot(dirs: &[PathBuf], out: &Path, force: bool) -> Result<EvalOutputs, EvalCmdError> {
+pub fn replot(
+    dirs: &[PathBuf],
+    labels: &[String],
+    out: &Path,
+    force: bool,
+) -> Result<EvalOutputs, EvalCmdError> {
     refuse_checkpoint_folder(out)?;
     for f in [
         "figure1_all.png",
@@ -30,6 +37,9 @@ pub fn replot(dirs: &[PathBuf], out: &Path, force: bool) -> Result<EvalOutputs, 
         if out.is_dir() {
             output::check_output(&out.join(f), Existing::from_force(force))?;
         }
+    }
+    if !labels.is_empty() {
+        return replot_pooled(dirs, labels, out);
     }
     let reports = read_reports(dirs)?;
     if reports.is_empty() {
@@ -61,6 +71,96 @@ pub fn replot(dirs: &[PathBuf], out: &Path, force: bool) -> Result<EvalOutputs, 
         fig1.len().max(fig2.len())
     ));
     Ok(outputs)
+}
+
+/// Figure 1 with one curve per labelled folder: the EPPO and AD reports
+/// found anywhere below it (each run at each evaluation seed, say) pooled
+/// into one curve, mean over the reports and standard error over them
+/// ([`Summary::pooled`]), and the random policy's reports of every folder
+/// pooled into its line. All reports must be of one environment. Budget
+/// sweeps are not pooled (their budgets differ between evaluations).
+fn replot_pooled(
+    dirs: &[PathBuf],
+    labels: &[String],
+    out: &Path,
+) -> Result<EvalOutputs, EvalCmdError> {
+    if labels.len() != dirs.len() {
+        return Err(EvalCmdError::Options(format!(
+            "{} --label for {} --from: give one label per --from folder, in order, or none",
+            labels.len(),
+            dirs.len()
+        )));
+    }
+    let mut outputs = EvalOutputs::default();
+    let mut env = None;
+    let (mut methods, mut random) = (Vec::new(), Vec::new());
+    for (label, dir) in labels.iter().zip(dirs) {
+        let mut parts = Vec::new();
+        for (e, method, sweep, summary) in read_reports_below(dir)? {
+            if sweep {
+                continue;
+            }
+            if *env.get_or_insert(e) != e {
+                return Err(EvalCmdError::Options(format!(
+                    "--from {}: it holds {e} reports beside {} ones: pool one environment at a time",
+                    dir.display(),
+                    env.map_or(String::new(), |x| x.to_string())
+                )));
+            }
+            match method {
+                Method::Random => random.push(summary),
+                _ => parts.push(summary),
+            }
+        }
+        if parts.is_empty() {
+            return Err(EvalCmdError::Options(format!(
+                "--from {}: no EPPO or AD eval report (*.json written by icrl eval) below it",
+                dir.display()
+            )));
+        }
+        outputs.lines.push(format!(
+            "{label}: {} reports pooled from {}",
+            parts.len(),
+            dir.display()
+        ));
+        methods.push((label.clone(), Summary::pooled(&parts)));
+    }
+    let Some(env) = env else {
+        return Err(EvalCmdError::Options("no --from folder given".into()));
+    };
+    output::create_folder(out)?;
+    let curves = EnvCurves {
+        env: env_defaults(env).title.into(),
+        methods,
+        random: (!random.is_empty()).then(|| Summary::pooled(&random)),
+    };
+    outputs
+        .files
+        .extend(plots::figure1(&[curves], &out.join("figure1_all"))?);
+    Ok(outputs)
+}
+
+/// The reports of the JSON files in `dir` and every folder below it, in
+/// path order, but for run folders and checkpoints (whose JSON files are
+/// not reports); a folder that is not there is refused.
+fn read_reports_below(dir: &Path) -> Result<Vec<Report>, EvalCmdError> {
+    let mut reports = read_reports(&[dir.to_path_buf()])?;
+    let run_or_checkpoint = |d: &Path| {
+        d.join("checkpoints").is_dir()
+            || ["manifest.json", "spec.json"]
+                .iter()
+                .any(|f| d.join(f).is_file())
+    };
+    let mut below: Vec<PathBuf> = std::fs::read_dir(dir)
+        .map_err(io_err(dir))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.is_dir() && !run_or_checkpoint(p))
+        .collect();
+    below.sort();
+    for d in below {
+        reports.extend(read_reports_below(&d)?);
+    }
+    Ok(reports)
 }
 
 /// One report as the figures take it: environment, method, whether it is a

@@ -91,6 +91,7 @@ fn reports_of_two_environments_are_redrawn_side_by_side() {
     run(Vec::new(), &b).unwrap();
     let out = replot(
         &[dir.join("darkroom"), dir.join("point")],
+        &[],
         &dir.join("all"),
         false,
     )
@@ -107,10 +108,59 @@ fn reports_of_two_environments_are_redrawn_side_by_side() {
             .len()
             > 1000
     );
-    let e = replot(&[dir.join("all")], &dir.join("x"), false)
+    let e = replot(&[dir.join("all")], &[], &dir.join("x"), false)
         .unwrap_err()
         .to_string();
     assert!(e.contains("no eval reports"), "{e}");
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+#[test]
+fn labelled_folders_are_pooled_into_one_curve_each() {
+    let dir = std::env::temp_dir().join(format!("icrl-eval-pooled-{}", std::process::id()));
+    // Two evaluation seeds of one "run": the random policy's reports, a copy
+    // of each relabelled as EPPO's so that the folder holds a method's curve.
+    for seed in [1u64, 2] {
+        let mut o = options(dir.join(format!("runs/eval_seed{seed}")));
+        o.sweep = false;
+        o.eval_seed = seed;
+        run(Vec::new(), &o).unwrap();
+        let folder = dir.join(format!("runs/eval_seed{seed}"));
+        let mut report: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(folder.join("random_darkroom.json")).unwrap())
+                .unwrap();
+        report["method"] = "Eppo".into();
+        std::fs::write(
+            folder.join("eppo_run_darkroom.json"),
+            serde_json::to_vec(&report).unwrap(),
+        )
+        .unwrap();
+    }
+    let runs = [dir.join("runs")];
+    let out = replot(&runs, &["ablation".into()], &dir.join("fig"), false).unwrap();
+    assert!(
+        out.lines[0].starts_with("ablation: 2 reports pooled"),
+        "{:?}",
+        out.lines
+    );
+    assert_eq!(out.files.len(), 2, "figure 1, PNG and SVG");
+    assert!(
+        std::fs::metadata(dir.join("fig/figure1_all.svg"))
+            .unwrap()
+            .len()
+            > 1000
+    );
+
+    let e = replot(&runs, &["a".into(), "b".into()], &dir.join("x"), false)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("2 --label for 1 --from"), "{e}");
+    std::fs::remove_file(dir.join("runs/eval_seed1/eppo_run_darkroom.json")).unwrap();
+    std::fs::remove_file(dir.join("runs/eval_seed2/eppo_run_darkroom.json")).unwrap();
+    let e = replot(&runs, &["a".into()], &dir.join("x"), false)
+        .unwrap_err()
+        .to_string();
+    assert!(e.contains("no EPPO or AD eval report"), "{e}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 
