@@ -73,9 +73,9 @@ pub fn replot(
     Ok(outputs)
 }
 
-/// Figure 1 with one curve per labelled folder: the EPPO and AD reports
-/// found anywhere below it (each run at each evaluation seed, say) pooled
-/// into one curve, mean over the reports and standard error over them
+/// Figure 1 with one curve per label: the EPPO and AD reports found
+/// anywhere below its folders (each run at each evaluation seed, say; a
+/// label may name several folders) pooled into one curve, mean over the reports and standard error over them
 /// ([`Summary::pooled`]), and the random policy's reports of every folder
 /// pooled into its line. All reports must be of one environment. Budget
 /// sweeps are not pooled (their budgets differ between evaluations).
@@ -94,8 +94,10 @@ fn replot_pooled(
     let mut outputs = EvalOutputs::default();
     let mut env = None;
     let (mut methods, mut random) = (Vec::new(), Vec::new());
+    // A label given to several folders pools them all into its curve.
+    let mut curves: Vec<(&String, Vec<Summary>, Vec<String>)> = Vec::new();
     for (label, dir) in labels.iter().zip(dirs) {
-        let mut parts = Vec::new();
+        let mut found = 0;
         for (e, method, sweep, summary) in read_reports_below(dir)? {
             if sweep {
                 continue;
@@ -107,21 +109,31 @@ fn replot_pooled(
                     env.map_or(String::new(), |x| x.to_string())
                 )));
             }
-            match method {
-                Method::Random => random.push(summary),
-                _ => parts.push(summary),
+            if method == Method::Random {
+                random.push(summary);
+                continue;
+            }
+            found += 1;
+            match curves.iter_mut().find(|c| c.0 == label) {
+                Some(c) => c.1.push(summary),
+                None => curves.push((label, vec![summary], Vec::new())),
             }
         }
-        if parts.is_empty() {
+        if found == 0 {
             return Err(EvalCmdError::Options(format!(
                 "--from {}: no EPPO or AD eval report (*.json written by icrl eval) below it",
                 dir.display()
             )));
         }
+        if let Some(c) = curves.iter_mut().find(|c| c.0 == label) {
+            c.2.push(dir.display().to_string());
+        }
+    }
+    for (label, parts, from) in curves {
         outputs.lines.push(format!(
             "{label}: {} reports pooled from {}",
             parts.len(),
-            dir.display()
+            from.join(", ")
         ));
         methods.push((label.clone(), Summary::pooled(&parts)));
     }

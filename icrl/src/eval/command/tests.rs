@@ -151,6 +151,16 @@ fn labelled_folders_are_pooled_into_one_curve_each() {
             > 1000
     );
 
+    // One label over two folders: one curve of both folders' reports.
+    let both = [dir.join("runs/eval_seed1"), dir.join("runs/eval_seed2")];
+    let labels = ["ablation".to_string(), "ablation".to_string()];
+    let out = replot(&both, &labels, &dir.join("fig"), true).unwrap();
+    assert_eq!(out.lines.len(), 1, "{:?}", out.lines);
+    assert!(
+        out.lines[0].starts_with("ablation: 2 reports pooled from "),
+        "{:?}",
+        out.lines
+    );
     let e = replot(&runs, &["a".into(), "b".into()], &dir.join("x"), false)
         .unwrap_err()
         .to_string();
