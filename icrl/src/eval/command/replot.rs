@@ -97,7 +97,7 @@ fn replot_pooled(
     // A label given to several folders pools them all into its curve.
     let mut curves: Vec<(&String, Vec<Summary>, Vec<String>)> = Vec::new();
     for (label, dir) in labels.iter().zip(dirs) {
-        let mut found = 0;
+        let mut parts = Vec::new();
         for (e, method, sweep, summary) in read_reports_below(dir)? {
             if sweep {
                 continue;
@@ -109,24 +109,24 @@ fn replot_pooled(
                     env.map_or(String::new(), |x| x.to_string())
                 )));
             }
-            if method == Method::Random {
-                random.push(summary);
-                continue;
-            }
-            found += 1;
-            match curves.iter_mut().find(|c| c.0 == label) {
-                Some(c) => c.1.push(summary),
-                None => curves.push((label, vec![summary], Vec::new())),
+            match method {
+                Method::Random => random.push(summary),
+                _ => parts.push(summary),
             }
         }
-        if found == 0 {
+        if parts.is_empty() {
             return Err(EvalCmdError::Options(format!(
                 "--from {}: no EPPO or AD eval report (*.json written by icrl eval) below it",
                 dir.display()
             )));
         }
-        if let Some(c) = curves.iter_mut().find(|c| c.0 == label) {
-            c.2.push(dir.display().to_string());
+        let from = dir.display().to_string();
+        match curves.iter_mut().find(|c| c.0 == label) {
+            Some(c) => {
+                c.1.extend(parts);
+                c.2.push(from);
+            }
+            None => curves.push((label, parts, vec![from])),
         }
     }
     for (label, parts, from) in curves {
