@@ -58,22 +58,21 @@ pub fn eppo(
             crate::presets::preset_table("eppo", env, preset).map_err(cfg_err)?,
         ),
     };
-    // A run's config.toml written before the settings had sections is
-    // compared with the `--set`s in sections, as they apply.
+    // A run's config.toml and the config it resumes with are compared as
+    // resolved configs: sections or the flat form, an empty list or none,
+    // a default written or left out, are no change.
     let saved = match resume {
-        Some(_) => {
-            let mut saved = table.clone();
-            EppoConfig::migrate(&mut saved)
-                .map_err(|e| EppoError::Config(format!("{name}: {e}")))?;
-            Some(saved)
-        }
+        Some(_) => Some(config_table(&EppoConfig::from_table(
+            &name,
+            table.clone(),
+        )?)?),
         None => None,
     };
     EppoConfig::apply_sets(&mut table, sets)?;
-    if let (Some(saved), Some(path)) = (&saved, resume) {
-        check_eppo_resume(path, saved, &table)?;
-    }
     let cfg = EppoConfig::from_table(&name, table)?;
+    if let (Some(saved), Some(path)) = (&saved, resume) {
+        check_eppo_resume(path, saved, &config_table(&cfg)?)?;
+    }
     let opts = PretrainOptions {
         env: env_name,
         cfg,
@@ -95,6 +94,11 @@ pub fn eppo(
         eprintln!("warning: {e}");
     }
     Ok(report)
+}
+
+/// A config as the table its run's `config.toml` holds.
+fn config_table(cfg: &EppoConfig) -> Result<toml::Table, EppoError> {
+    toml::Table::try_from(cfg).map_err(|e| EppoError::Config(e.to_string()))
 }
 
 /// [`RunDir::resolve_resume`] for `--resume` and `--fork`, then
@@ -423,25 +427,26 @@ fn warn_unreadable_metrics(run: &RunDir, lines: &[usize]) {
     );
 }
 
-/// `(key, "key: before -> after")` for every setting of `now` that differs
-/// from `saved`, both in the same form: dotted keys for nested tables, but an
-/// EPPO setting by its own name (`lambda_max`, not `constraint.lambda_max`:
-/// [`EppoConfig::flat_name`]).
+/// `(key, "key: before -> after")` for every setting that differs between
+/// `saved` and `now`, set in either, both in the same form: dotted keys for
+/// nested tables, but an EPPO setting by its own name (`lambda_max`, not
+/// `constraint.lambda_max`: [`EppoConfig::flat_name`]).
 fn setting_changes(saved: &toml::Table, now: &toml::Table) -> Vec<(String, String)> {
-    let mut old = Vec::new();
-    let mut new = Vec::new();
-    flatten("", saved, &mut old);
-    flatten("", now, &mut new);
-    let named = |(key, value): (String, String)| (EppoConfig::flat_name(&key).to_string(), value);
-    let old: Vec<(String, String)> = old.into_iter().map(named).collect();
-    new.into_iter()
-        .map(named)
-        .filter_map(|(key, after)| {
-            let before = old.iter().find(|(k, _)| *k == key).map(|(_, v)| v.as_str());
-            (before != Some(after.as_str())).then(|| {
-                let change = format!("{key}: {} -> {after}", before.unwrap_or("(unset)"));
-                (key, change)
-            })
+    let leaves = |table: &toml::Table| {
+        let mut out = Vec::new();
+        flatten("", table, &mut out);
+        out.into_iter()
+            .map(|(key, value)| (EppoConfig::flat_name(&key).to_string(), value))
+            .collect::<std::collections::BTreeMap<_, _>>()
+    };
+    let (old, new) = (leaves(saved), leaves(now));
+    let keys: std::collections::BTreeSet<&String> = old.keys().chain(new.keys()).collect();
+    keys.into_iter()
+        .filter(|key| old.get(*key) != new.get(*key))
+        .map(|key| {
+            let value = |v: Option<&String>| v.map_or("(unset)".to_string(), String::clone);
+            let change = format!("{key}: {} -> {}", value(old.get(key)), value(new.get(key)));
+            (key.clone(), change)
         })
         .collect()
 }
@@ -586,8 +591,8 @@ mod tests {
 
     /// A run whose config.toml is flat (every run written before the
     /// settings had sections) is compared with the `--set`s in sections:
-    /// unchanged, only its length is asked for; changed, each change is
-    /// named by its setting, as before.
+    /// unchanged (an empty list where it wrote none included), only its
+    /// length is asked for; changed, each change is named by its setting.
     #[test]
     fn a_flat_run_resumes_against_sets_in_sections() {
         let from = Path::new(env!("CARGO_MANIFEST_DIR"))
@@ -620,6 +625,24 @@ mod tests {
             err.contains("it has done 5291 updates and total_updates is 5291"),
             "{err}"
         );
+        // Emptying a list the run wrote is a change; an empty list where it
+        // wrote none (resolved, the same config) is not.
+        let emptied = [
+            "total_updates=5291",
+            "constraint.over_budget_price_schedule=[]",
+        ];
+        let err = resume(&emptied);
+        assert!(
+            err.contains("over_budget_price_schedule: [{ after = 4000, price = 1.0 }, { after = 6000, price = 2.0 }] -> (unset)"),
+            "{err}"
+        );
+        for config in [run.join("config.toml"), step.join("config.toml")] {
+            let text = fs::read_to_string(&config).unwrap();
+            let cut = text.find("[[over_budget_price_schedule]]").unwrap();
+            fs::write(&config, &text[..cut]).unwrap();
+        }
+        let err = resume(&emptied);
+        assert!(err.contains("it has done 5291 updates"), "{err}");
         let err = resume(&["lr=0.1", "constraint.lambda_max=0.5"]);
         assert!(
             err.contains("these settings differ from its config.toml: ")
