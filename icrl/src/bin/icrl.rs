@@ -239,6 +239,11 @@ struct DatasetArgs {
     /// unsharded run with the same seed holds. Join them with `icrl dataset merge`.
     #[arg(long, value_name = "I/N")]
     shard: Option<icrl::data::histories::Shard>,
+    /// Set one of the PPO-Lagrangian learner's settings, e.g. `--set
+    /// learning_rate=3e-4 --set update_epochs=8` (the names: the error for
+    /// an unknown one lists them); recorded in the file's config.
+    #[arg(long = "set", value_name = "KEY=VALUE")]
+    set: Vec<String>,
     /// Replace an existing history file at --out (never a device, link,
     /// folder or checkpoint file).
     #[arg(long)]
@@ -327,6 +332,7 @@ fn dataset(args: DatasetArgs) -> anyhow::Result<()> {
         physics_steps_per_action: args.physics_steps_per_action,
         keep_episodes: args.keep_episodes,
         shard: args.shard,
+        ppo_sets: args.set,
         force: args.force,
     })?;
     println!(

@@ -8,6 +8,7 @@ use safety_envs::output::{Existing, Lock};
 
 use crate::data::dataset::{DatasetConfig, DatasetError, Source, generate};
 use crate::data::histories::{HistoryError, Shard};
+use crate::ppo_lagrangian::PpoLagConfig;
 
 /// The lock of one output file, `.NAME.lock` beside it (removed at the end):
 /// a second `dataset` writing the same file is refused with the first's pid.
@@ -21,6 +22,30 @@ fn output_lock(out: &std::path::Path) -> Result<Lock, HistoryError> {
         &format!("the output {}", out.display()),
         true,
     )?)
+}
+
+/// `ppo` with the `--set NAME=VALUE`s applied; an unknown name is refused
+/// with the valid ones, and `total_steps` with `--steps`, which sets it.
+fn with_sets(ppo: &PpoLagConfig, sets: &[String]) -> Result<PpoLagConfig, DatasetError> {
+    if sets.is_empty() {
+        return Ok(ppo.clone());
+    }
+    let refuse = |e: String| DatasetError::Config(format!("--set: {e}"));
+    if let Some(set) = sets
+        .iter()
+        .find(|s| s.split('=').next().map(str::trim) == Some("total_steps"))
+    {
+        return Err(refuse(format!(
+            "{set}: a history's length is --steps; pass --steps instead"
+        )));
+    }
+    let mut table = toml::Table::try_from(ppo).map_err(|e| refuse(e.to_string()))?;
+    crate::presets::apply_overrides(&mut table, sets).map_err(|e| refuse(e.to_string()))?;
+    let ppo: PpoLagConfig = table
+        .try_into()
+        .map_err(|e: toml::de::Error| refuse(e.to_string()))?;
+    ppo.validate().map_err(|e| refuse(e.to_string()))?;
+    Ok(ppo)
 }
 
 /// The `dataset` command's options (see `icrl dataset --help`).
@@ -41,6 +66,8 @@ pub struct DatasetCommand {
     pub keep_episodes: Option<usize>,
     /// Make only this part of the grid (`--shard I/N`).
     pub shard: Option<Shard>,
+    /// `NAME=VALUE` changes to the PPO-Lagrangian learner's settings (`--set`).
+    pub ppo_sets: Vec<String>,
     /// Replace an existing history file at `out` (`--force`).
     pub force: bool,
 }
@@ -79,6 +106,7 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
     if let Some(c) = &cmd.cost_limits {
         cfg.cost_limits = c.clone();
     }
+    cfg.ppo = with_sets(&cfg.ppo, &cmd.ppo_sets)?;
     cfg.validate()?;
     // PPO-Lagrangian learns in whole rollouts: fewer steps would be rounded
     // up in silence (a history of 236 steps for --steps 1).
@@ -175,4 +203,41 @@ pub fn dataset_command(cmd: &DatasetCommand) -> Result<DatasetReport, DatasetErr
         late: (late.0 / nl, late.1 / nl),
         physics_steps_per_action: data.file.info.physics_steps_per_action,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn sets(s: &[&str]) -> Vec<String> {
+        s.iter().map(|s| s.to_string()).collect()
+    }
+
+    /// `--set` changes the named settings only; a wrong name, a bad value
+    /// and `total_steps` (which `--steps` sets) are refused, naming the fix.
+    #[test]
+    fn sets_change_the_ppo_settings_they_name_and_refuse_the_rest() {
+        let paper = PpoLagConfig::darkroom();
+        let changed = with_sets(&paper, &sets(&["learning_rate=3e-4", "update_epochs=8"])).unwrap();
+        assert_eq!(changed.learning_rate, 3e-4);
+        assert_eq!(changed.update_epochs, 8);
+        assert_eq!(
+            PpoLagConfig {
+                learning_rate: paper.learning_rate,
+                update_epochs: paper.update_epochs,
+                ..changed
+            },
+            paper
+        );
+        let err = |s: &[&str]| with_sets(&paper, &sets(s)).unwrap_err().to_string();
+        let unknown = err(&["learning_rat=1e-3"]);
+        assert!(
+            unknown.contains("learning_rat") && unknown.contains("learning_rate"),
+            "{unknown}"
+        );
+        assert!(err(&["total_steps=10"]).contains("pass --steps instead"));
+        let negative = err(&["learning_rate=-1"]);
+        assert!(negative.contains("learning_rate"), "{negative}");
+        assert!(err(&["update_epochs=0"]).contains("update_epochs"));
+    }
 }
