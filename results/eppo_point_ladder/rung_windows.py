@@ -31,14 +31,19 @@ def window_mean(records, key, lo, hi):
     return sum(values) / len(values) if values else float("nan")
 
 
-runs = []
-for arg in sys.argv[1:]:
-    name, path = arg.split("=", 1)
-    runs.append((name, [json.loads(l) for l in open(path)]))
-last = max(r["updates"] for _, recs in runs for r in recs)
-print("updates run    " + " ".join(label.rjust(6) for _, label in KEYS))
-for hi in range(500, last + 1, 500):
-    for name, recs in runs:
-        cells = [window_mean(recs, key, hi - 500, hi) for key, _ in KEYS]
-        print(f"{hi:7d} {name:6s} " + " ".join(f"{c:6.3f}" if abs(c) < 10 else f"{c:6.2f}" for c in cells))
-    print()
+def main():
+    runs = []
+    for arg in sys.argv[1:]:
+        name, path = arg.split("=", 1)
+        runs.append((name, [json.loads(l) for l in open(path)]))
+    last = max(r["updates"] for _, recs in runs for r in recs)
+    print("updates run    " + " ".join(label.rjust(6) for _, label in KEYS))
+    for hi in range(500, last + 1, 500):
+        for name, recs in runs:
+            cells = [window_mean(recs, key, hi - 500, hi) for key, _ in KEYS]
+            print(f"{hi:7d} {name:6s} " + " ".join(f"{c:6.3f}" if abs(c) < 10 else f"{c:6.2f}" for c in cells))
+        print()
+
+
+if __name__ == "__main__":
+    main()

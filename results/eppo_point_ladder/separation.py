@@ -5,8 +5,9 @@ of the weak runs (ps11, pf0, pf2) in brackets; + marks ps8 above all three,
 - below all three. Usage: python3 separation.py > separation.txt
 """
 import json
-import math
 from pathlib import Path
+
+from rung_windows import window_mean
 
 HERE = Path(__file__).parent
 RUNS = {
@@ -28,17 +29,6 @@ KEYS = [
     ("losses/grad_norm", "grad norm"),
     ("episodic_cost", "cost"),
 ]
-
-
-def window_mean(records, key, lo, hi):
-    values = [
-        r[key]
-        for r in records
-        if lo < r["updates"] <= hi
-        and isinstance(r.get(key), (int, float))
-        and not math.isnan(r[key])
-    ]
-    return sum(values) / len(values) if values else float("nan")
 
 
 runs = {name: [json.loads(l) for l in open(HERE / path)] for name, path in RUNS.items()}
