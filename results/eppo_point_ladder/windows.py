@@ -1,4 +1,5 @@
-import json,sys,math
+import json,sys
+from rung_windows import window_mean
 # Means of a run's training metrics over windows of updates.
 # usage: python3 windows.py metrics.jsonl [window_updates (200)] [goal_slots|hazard_slots]
 # goal_slots: a goal-slot run's keys (the hidden share, the hidden/shown split) instead;
@@ -16,7 +17,4 @@ while b < recs[-1]['updates']:
     ch=[r for r in recs if b < r['updates'] <= b+w]
     b+=w
     if not ch: continue
-    def m(k):
-        v=[r.get(k) for r in ch if isinstance(r.get(k),(int,float)) and not math.isnan(r.get(k))]
-        return sum(v)/len(v) if v else float('nan')
-    print(f"{ch[-1]['updates']:6d} {ch[-1]['env_steps']:9d} "+' '.join(f"{m(k):9.3f}" for k in keys))
+    print(f"{ch[-1]['updates']:6d} {ch[-1]['env_steps']:9d} "+' '.join(f"{window_mean(ch,k,b-w,b):9.3f}" for k in keys))
